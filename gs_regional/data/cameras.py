@@ -1,0 +1,64 @@
+"""The one camera type used everywhere (OpenCV convention: x right, y down, z forward)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Camera:
+    world_to_camera: torch.Tensor  # (4, 4) float32, OpenCV convention
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    image_name: str = ""
+    image_path: Optional[str] = None  # where the photo is, if the scene has one
+    # Lens distortion (k1, k2, p1, p2) of the *photo*; renders are always undistorted pinhole.
+    distortion: Optional[Tuple[float, float, float, float]] = None
+
+    def __post_init__(self) -> None:
+        w2c = torch.as_tensor(np.asarray(self.world_to_camera), dtype=torch.float32)
+        if w2c.shape != (4, 4):
+            raise ValueError(f"camera '{self.image_name}': world_to_camera must be 4x4, got {tuple(w2c.shape)}")
+        self.world_to_camera = w2c
+        self.width, self.height = int(self.width), int(self.height)
+        self.fx, self.fy, self.cx, self.cy = float(self.fx), float(self.fy), float(self.cx), float(self.cy)
+
+    @property
+    def K(self) -> torch.Tensor:
+        return torch.tensor(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=torch.float32
+        )
+
+    @property
+    def camera_to_world(self) -> torch.Tensor:
+        return torch.linalg.inv(self.world_to_camera.double()).float()
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates, (3,)."""
+        R = self.world_to_camera[:3, :3].double()
+        t = self.world_to_camera[:3, 3].double()
+        return (-R.T @ t).float()
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera with the image resized by `factor` (0.25 = 4x smaller)."""
+        w = max(1, int(round(self.width * factor)))
+        h = max(1, int(round(self.height * factor)))
+        sx, sy = w / self.width, h / self.height
+        return replace(
+            self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w, height=h
+        )
+
+    def to(self, device) -> "Camera":
+        return replace(self, world_to_camera=self.world_to_camera.to(device))
+
+    @property
+    def device(self) -> torch.device:
+        return self.world_to_camera.device

@@ -1,0 +1,1 @@
+from gs_regional.depth import depth_anything, simulated  # noqa: F401

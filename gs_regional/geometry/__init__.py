@@ -1,0 +1,1 @@
+from gs_regional.geometry import gaussian_model  # noqa: F401

@@ -1,0 +1,27 @@
+from setuptools import find_packages, setup
+
+setup(
+    name="gs_regional",
+    version="0.1.0",
+    description="Text-driven regional editing of 3D Gaussian Splatting scenes",
+    python_requires=">=3.10",
+    packages=find_packages(include=["gs_regional", "gs_regional.*"]),
+    install_requires=[
+        "torch==2.13.0",
+        "omegaconf>=2.3",
+        "lightning>=2.4",
+        "diffusers>=0.30",
+        "transformers>=4.45",
+        "plyfile>=1.0",
+        "imageio>=2.30",
+        "imageio-ffmpeg>=0.5",
+        "numpy>=1.24",
+        "safetensors",
+        "tqdm",
+    ],
+    extras_require={
+        "gsplat": ["gsplat>=1.4"],
+        "lpips": ["lpips>=0.1.4"],
+        "test": ["pytest>=7"],
+    },
+)

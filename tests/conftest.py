@@ -1,0 +1,44 @@
+"""Test session set-up: never touch the network; locate the shared data."""
+import os
+import socket
+from pathlib import Path
+
+import pytest
+
+# Before anything imports huggingface_hub / transformers / diffusers.
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ["TRANSFORMERS_OFFLINE"] = "1"
+os.environ["HF_DATASETS_OFFLINE"] = "1"
+os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+class NetworkAccessError(RuntimeError):
+    pass
+
+
+_real_connect = socket.socket.connect
+
+
+def _guarded_connect(self, address):
+    host = address[0] if isinstance(address, tuple) else address
+    if isinstance(host, str) and host not in ("127.0.0.1", "localhost", "::1") and not host.startswith("/"):
+        raise NetworkAccessError(f"a test tried to reach the network: {address}")
+    return _real_connect(self, address)
+
+
+socket.socket.connect = _guarded_connect
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test with a clear reason."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the checkout)")
+    return p
+
+
+@pytest.fixture
+def shared():
+    return shared_path
