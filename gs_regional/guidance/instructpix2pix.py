@@ -1,1 +1,413 @@
-"""(to be written)"""
+"""InstructPix2Pix guidance (diffusers UNet + VAE + CLIP text encoder + DDIM scheduler).
+
+Two operations (DESIGN §3.1, §3.3):
+  * `relevance(images, prompt)`: noise the image latents to τ and take the per-pixel difference of
+    the text-conditioned and the empty-prompt noise predictions (both conditioned on the image);
+  * `edit(images, cond_images, prompt, t_start)`: partial (or full) DDIM denoising with IP2P's
+    3-branch classifier-free guidance, as diffusers' StableDiffusionInstructPix2PixPipeline.
+
+The weights live in this plain `Configurable`, not in any nn.Module of a system, so they never end
+up in a Lightning checkpoint. diffusers/transformers are imported lazily (importing the package
+stays light). The loading helpers at the top are shared with depth/depth_anything.py and
+metrics/clip.py.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
+
+import torch
+import torch.nn.functional as F
+
+from gs_regional.data.cameras import Camera
+from gs_regional.guidance.base import Guidance, check_images
+from gs_regional.registry import register
+
+T = TypeVar("T")
+
+# ---------------------------------------------------------------------------- shared loading helpers
+
+
+class PretrainedLoadError(OSError):
+    """A pretrained model (hub id or local folder) could not be loaded; the message says which part."""
+
+
+_DTYPES = {
+    "float32": torch.float32,
+    "fp32": torch.float32,
+    "float16": torch.float16,
+    "fp16": torch.float16,
+    "half": torch.float16,
+    "bfloat16": torch.bfloat16,
+    "bf16": torch.bfloat16,
+}
+
+
+def resolve_device(name: str) -> torch.device:
+    """"auto" = CUDA when available, else CPU; anything else must be a usable torch device."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"unknown device '{name}'; use 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device '{name}' was requested but CUDA is not available; use device=auto or cpu")
+    return device
+
+
+def resolve_dtype(name: str, device: torch.device) -> torch.dtype:
+    """"auto" = float16 on CUDA (what the models were released for), float32 on CPU."""
+    if name == "auto":
+        return torch.float16 if device.type == "cuda" else torch.float32
+    if name not in _DTYPES:
+        raise ValueError(f"unknown dtype '{name}'; use auto, float32, float16 or bfloat16")
+    return _DTYPES[name]
+
+
+def check_local_folder(pretrained: str, required: Dict[str, Sequence[str]], what: str) -> bool:
+    """True when `pretrained` is a local folder. There, each `required` sub-path ("" = the folder
+    itself) must hold at least one of its files, checked before loading so that the error names the
+    missing component rather than surfacing from deep inside from_pretrained."""
+    path = os.path.expanduser(pretrained)
+    if not os.path.isdir(path):
+        if os.path.exists(path):
+            raise PretrainedLoadError(f"{what}: '{pretrained}' is a file; expected a model folder or a hub id")
+        if pretrained.startswith(("/", "./", "../", "~", ".\\")):
+            raise PretrainedLoadError(f"{what}: model folder '{pretrained}' does not exist")
+        return False
+    for sub, files in required.items():
+        folder = os.path.join(path, sub) if sub else path
+        label = f"component '{sub}' (subfolder {folder})" if sub else f"folder {folder}"
+        if not os.path.isdir(folder):
+            raise PretrainedLoadError(f"{what}: '{pretrained}' lacks the {label}")
+        if not any(os.path.isfile(os.path.join(folder, f)) for f in files):
+            raise PretrainedLoadError(f"{what}: {label} of '{pretrained}' has none of {', '.join(files)}")
+    return True
+
+
+def load_pretrained(what: str, pretrained: str, local_files_only: bool, fn: Callable[[], T]) -> T:
+    """Run one from_pretrained call and turn any failure into an error that names the model and the
+    part, with a hint when a hub id could not be found offline."""
+    try:
+        return fn()
+    except Exception as e:  # noqa: BLE001 - re-raised with context
+        hint = ""
+        if not os.path.isdir(os.path.expanduser(pretrained)):
+            try:
+                from huggingface_hub import constants
+
+                offline = bool(constants.HF_HUB_OFFLINE)
+            except Exception:  # noqa: BLE001
+                offline = False
+            hint = f" ('{pretrained}' is not a local folder, so it was looked up as a Hugging Face hub id"
+            if offline or local_files_only:
+                hint += "; offline mode is on (HF_HUB_OFFLINE or local_files_only) and it is not in the local cache"
+            hint += "; download it first or point `pretrained` at a local folder)"
+        raise PretrainedLoadError(f"cannot load {what} from '{pretrained}': {e}{hint}") from e
+
+
+def to_nchw(images: torch.Tensor, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return images.permute(0, 3, 1, 2).to(device=device, dtype=torch.float32).contiguous().to(dtype)
+
+
+def resize(x: torch.Tensor, size: Tuple[int, int], mode: str = "bilinear") -> torch.Tensor:
+    """Resize (B, C, H, W); antialiased when shrinking (as PIL does), a no-op at the same size."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    shrink = size[0] < x.shape[-2] or size[1] < x.shape[-1]
+    if mode in ("bilinear", "bicubic"):
+        return F.interpolate(x, size=size, mode=mode, align_corners=False, antialias=shrink)
+    return F.interpolate(x, size=size, mode=mode)
+
+
+def batches(n: int, size: int) -> Iterator[slice]:
+    for i in range(0, n, size):
+        yield slice(i, min(i + size, n))
+
+
+# -------------------------------------------------------------------------------- the guidance
+
+_IP2P_COMPONENTS = {
+    "unet": ("config.json",),
+    "vae": ("config.json",),
+    "text_encoder": ("config.json",),
+    "tokenizer": ("vocab.json", "tokenizer.json", "tokenizer_config.json"),
+    "scheduler": ("scheduler_config.json",),
+}
+
+
+@register("instructpix2pix")
+class InstructPix2Pix(Guidance):
+    @dataclass
+    class Config:
+        pretrained: str = "timbrooks/instruct-pix2pix"  # hub id or local folder (diffusers layout)
+        dtype: str = "auto"  # auto = float16 on CUDA, float32 on CPU; float32 | float16 | bfloat16
+        device: str = "auto"
+        guidance_scale: float = 7.5  # text guidance s_t
+        image_guidance_scale: float = 1.5  # image guidance s_i
+        num_inference_steps: int = 20  # DDIM steps of a full edit
+        max_batch_size: int = 4  # images per UNet call (the UNet batch is 3x this in edit)
+        channels_last: bool = False
+        sdpa: bool = True  # torch scaled-dot-product attention (AttnProcessor2_0) when available
+        cpu_offload: bool = False  # keep modules on the CPU and move each to the device only while used
+        local_files_only: bool = False
+
+    def __init__(self, cfg=None, where: str = "") -> None:
+        super().__init__(cfg, where)
+        c = self.cfg
+        if c.num_inference_steps < 1:
+            raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
+        if c.max_batch_size < 1:
+            raise ValueError(f"max_batch_size must be >= 1, got {c.max_batch_size}")
+        self.device = resolve_device(c.device)
+        self.dtype = resolve_dtype(c.dtype, self.device)
+        self._load()
+        self._emb_cache: Dict[str, torch.Tensor] = {}
+
+    # ------------------------------------------------------------------ loading
+
+    def _load(self) -> None:
+        from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+        from transformers import CLIPTextModel, CLIPTokenizer
+
+        c = self.cfg
+        p = c.pretrained
+        check_local_folder(p, _IP2P_COMPONENTS, "InstructPix2Pix")
+        kw = dict(local_files_only=c.local_files_only)
+
+        def load(sub: str, fn: Callable[[], T]) -> T:
+            return load_pretrained(f"InstructPix2Pix component '{sub}'", p, c.local_files_only, fn)
+
+        self.tokenizer = load("tokenizer", lambda: CLIPTokenizer.from_pretrained(p, subfolder="tokenizer", **kw))
+        self.text_encoder = load(
+            "text_encoder", lambda: CLIPTextModel.from_pretrained(p, subfolder="text_encoder", dtype=self.dtype, **kw)
+        )
+        self.vae = load("vae", lambda: AutoencoderKL.from_pretrained(p, subfolder="vae", torch_dtype=self.dtype, **kw))
+        self.unet = load(
+            "unet", lambda: UNet2DConditionModel.from_pretrained(p, subfolder="unet", torch_dtype=self.dtype, **kw)
+        )
+        sched_cfg = load("scheduler", lambda: DDIMScheduler.load_config(p, subfolder="scheduler", **kw))
+        overrides = {}
+        if sched_cfg.get("_class_name") != "DDIMScheduler":
+            # The hub IP2P ships an Euler scheduler config; DDIM's own defaults (clip_sample=True,
+            # set_alpha_to_one=True) are wrong for Stable Diffusion latents, so use SD's DDIM settings.
+            overrides = dict(clip_sample=False, set_alpha_to_one=False)
+        self.scheduler = DDIMScheduler.from_config(sched_cfg, **overrides)
+
+        if self.unet.config.in_channels != 2 * self.vae.config.latent_channels:
+            raise PretrainedLoadError(
+                f"InstructPix2Pix: the unet of '{p}' has in_channels={self.unet.config.in_channels}; IP2P needs "
+                f"{2 * self.vae.config.latent_channels} (noisy latents + image latents). Is it an InstructPix2Pix model?"
+            )
+        self.vae_scale_factor = 2 ** (len(self.vae.config.block_out_channels) - 1)
+        self.scaling_factor = float(self.vae.config.scaling_factor)
+        self.max_text_length = min(
+            int(self.tokenizer.model_max_length), int(self.text_encoder.config.max_position_embeddings)
+        )
+
+        if c.sdpa and hasattr(F, "scaled_dot_product_attention"):
+            from diffusers.models.attention_processor import AttnProcessor2_0 as Processor
+        else:
+            from diffusers.models.attention_processor import AttnProcessor as Processor
+        self.unet.set_attn_processor(Processor())
+        self.vae.set_attn_processor(Processor())
+        if c.channels_last:
+            self.unet.to(memory_format=torch.channels_last)
+        home = torch.device("cpu") if c.cpu_offload else self.device
+        for m in self.components():
+            m.requires_grad_(False).eval().to(home)
+
+    def components(self) -> List[torch.nn.Module]:
+        return [self.text_encoder, self.vae, self.unet]
+
+    @contextlib.contextmanager
+    def _using(self, module: torch.nn.Module):
+        """With cpu_offload, hold `module` on the device only for the duration of the block."""
+        if not self.cfg.cpu_offload or self.device.type == "cpu":
+            yield module
+            return
+        module.to(self.device)
+        try:
+            yield module
+        finally:
+            module.to("cpu")
+
+    # ------------------------------------------------------------------ text
+
+    @staticmethod
+    def _check_prompt(prompt: str) -> None:
+        if not isinstance(prompt, str) or not prompt.strip():
+            raise ValueError(f"prompt must be a non-empty instruction string, got {prompt!r}")
+
+    def _embed(self, prompt: str) -> torch.Tensor:
+        """(1, L, D) text-encoder hidden states, cached per prompt ("" is the unconditional one)."""
+        if prompt in self._emb_cache:
+            return self._emb_cache[prompt]
+        n = len(self.tokenizer(prompt, truncation=False).input_ids)
+        if n > self.max_text_length:
+            warnings.warn(
+                f"prompt is {n} tokens long; the text encoder takes {self.max_text_length}, so it is truncated: "
+                f"{prompt[:60]!r}...",
+                stacklevel=3,
+            )
+        ids = self.tokenizer(
+            prompt, padding="max_length", max_length=self.max_text_length, truncation=True, return_tensors="pt"
+        ).input_ids
+        with torch.no_grad(), self._using(self.text_encoder) as te:
+            emb = te(ids.to(self.device)).last_hidden_state.to(self.device, self.dtype)
+        self._emb_cache[prompt] = emb
+        return emb
+
+    # ------------------------------------------------------------------ images <-> latents
+
+    def _prepare(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, H, W, 3) in [0, 1] -> (B, 3, H8, W8) on the device, H8/W8 the nearest multiples of 8."""
+        f = self.vae_scale_factor
+        h, w = images.shape[1:3]
+        size = (max(f, round(h / f) * f), max(f, round(w / f) * f))
+        x = resize(images.permute(0, 3, 1, 2).float(), size)
+        return x.clamp(0, 1).to(self.device)
+
+    def _encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Mode of the VAE posterior (unscaled), float32 (B, 4, H/8, W/8)."""
+        out = []
+        with torch.no_grad(), self._using(self.vae) as vae:
+            for s in batches(x.shape[0], self.cfg.max_batch_size):
+                out.append(vae.encode((x[s] * 2 - 1).to(self.dtype)).latent_dist.mode().float())
+        self.vae_encodes += x.shape[0]
+        return torch.cat(out)
+
+    def _decode(self, z: torch.Tensor) -> torch.Tensor:
+        """Scaled latents -> (B, 3, H, W) images in [0, 1], float32."""
+        out = []
+        with torch.no_grad(), self._using(self.vae) as vae:
+            for s in batches(z.shape[0], self.cfg.max_batch_size):
+                x = vae.decode((z[s] / self.scaling_factor).to(self.dtype)).sample.float()
+                out.append(((x + 1) / 2).clamp(0, 1))
+        self.vae_decodes += z.shape[0]
+        return torch.cat(out)
+
+    def _unet(self, unet, latents: torch.Tensor, t: torch.Tensor, image_latents: torch.Tensor, emb: torch.Tensor):
+        inp = torch.cat([latents, image_latents], dim=1).to(self.dtype)
+        if self.cfg.channels_last:
+            inp = inp.contiguous(memory_format=torch.channels_last)
+        return unet(inp, t.to(self.device), encoder_hidden_states=emb).sample.float()
+
+    def _noise(self, shape, generator: torch.Generator) -> torch.Tensor:
+        # Drawn on the CPU so that results do not depend on the device or on the batch split.
+        return torch.randn(shape, generator=generator, dtype=torch.float32).to(self.device)
+
+    def _check_timestep(self, t: int, name: str) -> int:
+        n = self.scheduler.config.num_train_timesteps
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < n:
+            raise ValueError(f"{name} must be an integer timestep in [0, {n - 1}], got {t!r}")
+        return t
+
+    # ------------------------------------------------------------------ the interface
+
+    def relevance(
+        self,
+        images: torch.Tensor,
+        prompt: str,
+        timestep: int = 600,
+        samples: int = 1,
+        seed: int = 0,
+        cameras: Optional[Sequence[Camera]] = None,
+    ) -> torch.Tensor:
+        """Per-view maps (B, H, W) in [0, 1]: D = mean over latent channels of
+        |ε(z_τ, x, c) − ε(z_τ, x, ∅)|, averaged over `samples` noise draws, bilinearly upsampled from
+        latent to image size, then divided by its per-view max (each view's strongest response is 1;
+        an all-zero map stays 0). z0 is the mode of the VAE posterior (deterministic)."""
+        images = check_images(images)
+        self._check_prompt(prompt)
+        timestep = self._check_timestep(timestep, "timestep")
+        if samples < 1:
+            raise ValueError(f"samples must be >= 1, got {samples}")
+        b_all, h, w = images.shape[:3]
+        mode = self._encode(self._prepare(images))  # one encode serves as z0 and as the image condition
+        z0 = mode * self.scaling_factor
+        cond, null = self._embed(prompt), self._embed("")
+        t = torch.tensor(timestep, dtype=torch.long)
+        generator = torch.Generator("cpu").manual_seed(int(seed))
+        diff = torch.zeros(b_all, *mode.shape[2:], device=self.device)
+        with torch.no_grad(), self._using(self.unet) as unet:
+            for _ in range(samples):
+                z_t = self.scheduler.add_noise(z0, self._noise(z0.shape, generator), t.expand(b_all))
+                for s in batches(b_all, self.cfg.max_batch_size):
+                    b = s.stop - s.start
+                    emb = torch.cat([cond.expand(b, -1, -1), null.expand(b, -1, -1)])
+                    eps = self._unet(unet, z_t[s].repeat(2, 1, 1, 1), t, mode[s].repeat(2, 1, 1, 1), emb)
+                    eps_c, eps_u = eps.chunk(2)
+                    diff[s] += (eps_c - eps_u).abs().mean(dim=1)
+                    self.unet_evals += 2 * b
+        diff = F.interpolate((diff / samples)[:, None], size=(h, w), mode="bilinear", align_corners=False)[:, 0]
+        diff = diff / diff.flatten(1).amax(dim=1).clamp_min(1e-12)[:, None, None]
+        return diff.clamp(0, 1).to(images.device)
+
+    def edit(
+        self,
+        images: torch.Tensor,
+        cond_images: torch.Tensor,
+        prompt: str,
+        t_start: Optional[int] = None,
+        seed: int = 0,
+        cameras: Optional[Sequence[Camera]] = None,
+    ) -> torch.Tensor:
+        """Edited images (B, H, W, 3) in [0, 1] at the input size.
+
+        t_start=None: start from pure noise and run all `num_inference_steps` DDIM steps (a full
+        edit). Otherwise noise the (mode) latents of `images` to the largest scheduled timestep
+        <= t_start and run only the scheduled steps from there. Guidance as diffusers' IP2P
+        pipeline: ε = ε_u + s_t(ε_txt − ε_img) + s_i(ε_img − ε_u), branches (text + image),
+        (empty text + image), (empty text + zero image latents). Deterministic given `seed`.
+        """
+        images = check_images(images, "images")
+        cond_images = check_images(cond_images, "cond_images")
+        if images.shape != cond_images.shape:
+            raise ValueError(
+                f"images {tuple(images.shape)} and cond_images {tuple(cond_images.shape)} must have the same shape"
+            )
+        self._check_prompt(prompt)
+        sched = self.scheduler
+        sched.set_timesteps(self.cfg.num_inference_steps)
+        steps = sched.timesteps
+        if t_start is not None:
+            self._check_timestep(t_start, "t_start")
+            steps = steps[steps <= t_start]
+            if len(steps) == 0:
+                raise ValueError(
+                    f"t_start={t_start} is below the last DDIM timestep {int(sched.timesteps[-1])} for "
+                    f"num_inference_steps={self.cfg.num_inference_steps}: nothing to denoise"
+                )
+        b_all, h, w = images.shape[:3]
+        image_lat = self._encode(self._prepare(cond_images))
+        generator = torch.Generator("cpu").manual_seed(int(seed))
+        noise = self._noise(image_lat.shape, generator)
+        if t_start is None:
+            latents = noise * sched.init_noise_sigma
+        else:
+            z0 = self._encode(self._prepare(images)) * self.scaling_factor
+            latents = sched.add_noise(z0, noise, steps[:1].expand(b_all))
+        text, null = self._embed(prompt), self._embed("")
+        s_t, s_i = self.cfg.guidance_scale, self.cfg.image_guidance_scale
+        out = []
+        with torch.no_grad(), self._using(self.unet) as unet:
+            for s in batches(b_all, self.cfg.max_batch_size):
+                b = s.stop - s.start
+                lat = latents[s]
+                cond_lat = torch.cat([image_lat[s], image_lat[s], torch.zeros_like(image_lat[s])])
+                emb = torch.cat([text.expand(b, -1, -1), null.expand(b, -1, -1), null.expand(b, -1, -1)])
+                for t in steps:
+                    inp = sched.scale_model_input(lat.repeat(3, 1, 1, 1), t)
+                    eps_txt, eps_img, eps_unc = self._unet(unet, inp, t, cond_lat, emb).chunk(3)
+                    eps = eps_unc + s_t * (eps_txt - eps_img) + s_i * (eps_img - eps_unc)
+                    lat = sched.step(eps, t, lat).prev_sample
+                    self.unet_evals += 3 * b
+                out.append(lat)
+        edited = self._decode(torch.cat(out))
+        edited = resize(edited, (h, w)).clamp(0, 1)
+        return edited.permute(0, 2, 3, 1).contiguous().to(images.device)
