@@ -1,8 +1,10 @@
 """Typed, strictly parsed configuration (OmegaConf structured configs) and scheduled scalars."""
 from __future__ import annotations
 
+import difflib
+import numbers
 import os
-from dataclasses import dataclass, field, is_dataclass
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any, List, Optional, Sequence, Type, TypeVar, Union
 
 from omegaconf import DictConfig, OmegaConf
@@ -15,10 +17,23 @@ class ConfigError(ValueError):
     """A configuration problem; the message names the file or key at fault."""
 
 
+def _full_key(where: str, e: OmegaConfBaseException) -> str:
+    key = getattr(e, "full_key", None) or getattr(e, "key", None)
+    key = "" if key is None else str(key)
+    return ".".join(k for k in (where, key) if k)
+
+
+def _first_line(e: OmegaConfBaseException) -> str:
+    """OmegaConf messages append 'full_key: ... object_type=...' lines; keep the sentence."""
+    msg = getattr(e, "msg", None) or str(e)
+    return str(msg).strip().splitlines()[0] if str(msg).strip() else type(e).__name__
+
+
 def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "") -> T:
     """Merge a plain/OmegaConf mapping into the dataclass `cfg_cls`, rejecting unknown keys.
 
-    `where` names the YAML section (e.g. "system.geometry") so errors point at the full key.
+    `where` names the YAML section (e.g. "system") so errors point at the full key
+    (e.g. 'system.geometry.plyy', also inside nested dataclasses).
     """
     assert is_dataclass(cfg_cls), cfg_cls
     if isinstance(cfg, cfg_cls):
@@ -28,21 +43,34 @@ def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "") -> T:
         cfg = {}
     if is_dataclass(cfg):
         cfg = OmegaConf.structured(cfg)
+    if not isinstance(cfg, (dict, DictConfig)):
+        raise ConfigError(
+            f"config section '{where or cfg_cls.__qualname__}' must be a mapping of keys to values, "
+            f"got {type(cfg).__name__}: {cfg!r}"
+        )
     try:
         merged = OmegaConf.merge(base, cfg)
+        # Turn into a real dataclass instance (this also resolves ${...} interpolations);
+        # nested untyped dicts stay DictConfigs.
+        return OmegaConf.to_object(merged)
     except ConfigKeyError as e:
-        key = f"{where}.{e.key}" if where else str(e.key)
-        allowed = ", ".join(sorted(base.keys()))
+        key = _full_key(where, e)
+        owner = getattr(e, "object_type", None)
+        owner = owner if owner is not None and is_dataclass(owner) else cfg_cls
+        allowed = sorted(f.name for f in fields(owner))
+        close = difflib.get_close_matches(str(e.key), allowed, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
         raise ConfigError(
-            f"unknown config key '{key}' for {cfg_cls.__qualname__}; allowed keys: {allowed}"
+            f"unknown config key '{key}'{hint} for {owner.__qualname__}; allowed keys: {', '.join(allowed)}"
         ) from None
     except ValidationError as e:
-        key = f"{where}.{e.full_key}" if where else str(e.full_key)
-        raise ConfigError(f"bad value for config key '{key}': {e.msg}") from None
+        key = _full_key(where, e)
+        if key and key != where:
+            raise ConfigError(f"bad value for config key '{key}': {_first_line(e)}") from None
+        raise ConfigError(f"bad value in config section '{where or cfg_cls.__qualname__}': {_first_line(e)}") from None
     except OmegaConfBaseException as e:
-        raise ConfigError(f"config error in '{where or cfg_cls.__qualname__}': {e}") from None
-    # Turn into a real dataclass instance; nested untyped dicts stay DictConfigs.
-    return OmegaConf.to_object(merged)
+        key = _full_key(where, e) or cfg_cls.__qualname__
+        raise ConfigError(f"config error at '{key}': {_first_line(e)}") from None
 
 
 def to_container(cfg: Any) -> Any:
@@ -60,8 +88,10 @@ def scheduled(value: Union[float, int, Sequence], step: int) -> float:
     * ``[start_step, start_value, end_value, end_step]`` ramps linearly and holds at both ends;
     * ``[[step0, v0], [step1, v1], ...]`` is piecewise constant: the value of the last step <= step.
     """
-    if isinstance(value, (int, float)):
+    if isinstance(value, numbers.Real):  # also numpy scalars and bools
         return float(value)
+    if isinstance(value, str) or not hasattr(value, "__iter__"):
+        raise ConfigError(f"a scheduled value must be a number or a list, got {value!r}")
     value = list(value)
     if value and isinstance(value[0], (list, tuple)) or (value and OmegaConf.is_list(value[0])):
         current = float(value[0][1])
@@ -105,21 +135,34 @@ class ExperimentConfig:
 
 
 def load_config(path: str, overrides: Optional[List[str]] = None) -> DictConfig:
-    """Read a YAML config and apply `key=value` overrides (OmegaConf dotlist)."""
+    """Read a YAML config, apply `key=value` overrides (OmegaConf dotlist) and return it merged
+    onto the `ExperimentConfig` defaults with every `${...}` interpolation resolved.
+
+    The top level is validated here; component sections are validated by their components.
+    """
     if not os.path.isfile(path):
         raise ConfigError(f"config file not found: {path}")
     try:
         yaml_cfg = OmegaConf.load(path)
     except Exception as e:  # yaml errors carry the line number
         raise ConfigError(f"cannot parse config file {path}: {e}") from None
+    if not isinstance(yaml_cfg, DictConfig):
+        raise ConfigError(f"config file {path} must hold a mapping of keys to values at the top level")
     for item in overrides or []:
         if "=" not in item:
             raise ConfigError(f"override '{item}' is not of the form key=value")
     try:
         cli = OmegaConf.from_dotlist(list(overrides or []))
+        merged = OmegaConf.merge(yaml_cfg, cli)
     except Exception as e:
-        raise ConfigError(f"bad command-line override: {e}") from None
-    merged = OmegaConf.merge(yaml_cfg, cli)
-    # Validate the top level now; component sections are validated by their components.
-    parse_structured(ExperimentConfig, merged, where="")
-    return merged
+        raise ConfigError(f"bad command-line override: {str(e).splitlines()[0]}") from None
+    try:
+        parse_structured(ExperimentConfig, merged, where="")
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    cfg = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), merged)
+    try:
+        OmegaConf.resolve(cfg)  # so that sections handed to components stand alone
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"{path}: config error at '{_full_key('', e)}': {_first_line(e)}") from None
+    return cfg

@@ -1,9 +1,15 @@
 """Name -> class registry used to assemble systems from YAML (`*_type` keys)."""
 from __future__ import annotations
 
-from typing import Callable, Dict, Type
+import logging
+from typing import Callable, Dict, Optional, Type
+
+log = logging.getLogger(__name__)
 
 _REGISTRY: Dict[str, type] = {}
+# Modules that failed to import (built-in packages, user plugins) -> "ErrorType: message".
+# An unknown-name error mentions them: the missing class may live in one of them.
+_IMPORT_ERRORS: Dict[str, str] = {}
 
 
 class RegistryError(KeyError):
@@ -23,8 +29,11 @@ def register(name: str) -> Callable[[Type], Type]:
     """Class decorator: `@register("gaussian-model")`."""
 
     def deco(cls: Type) -> Type:
-        if name in _REGISTRY and _REGISTRY[name] is not cls:
-            old = _REGISTRY[name]
+        old = _REGISTRY.get(name)
+        # The same class defined again by the same module (the module was executed again, e.g. a
+        # plugin re-imported) replaces its old self; any other class is a genuine clash.
+        same_origin = old is not None and (old.__module__, old.__qualname__) == (cls.__module__, cls.__qualname__)
+        if old is not None and old is not cls and not same_origin:
             raise RegistryError(
                 f"name '{name}' is already registered to {old.__module__}.{old.__qualname__}; "
                 f"cannot register {cls.__module__}.{cls.__qualname__} under the same name"
@@ -36,19 +45,41 @@ def register(name: str) -> Callable[[Type], Type]:
     return deco
 
 
+def note_import_error(module: str, error: Optional[str]) -> None:
+    """Record (or with `error=None` forget) that `module` failed to import."""
+    if error is None:
+        _IMPORT_ERRORS.pop(module, None)
+    else:
+        _IMPORT_ERRORS[module] = error
+
+
+def import_errors() -> Dict[str, str]:
+    return dict(_IMPORT_ERRORS)
+
+
 BUILTIN_PACKAGES = ("geometry", "renderers", "data", "guidance", "depth", "systems")
 _builtins_loaded = False
 
 
 def load_builtins() -> None:
-    """Import every built-in component package so that its classes register themselves."""
+    """Import every built-in component package so that its classes register themselves.
+
+    A package that fails to import is logged and remembered (unknown-name errors mention it)
+    instead of making every lookup fail: components of the other packages stay usable.
+    """
     global _builtins_loaded
     if _builtins_loaded:
         return
     import importlib
 
     for pkg in BUILTIN_PACKAGES:
-        importlib.import_module(f"gs_regional.{pkg}")
+        module = f"gs_regional.{pkg}"
+        try:
+            importlib.import_module(module)
+        except Exception as e:
+            msg = f"{type(e).__name__}: {e}"
+            note_import_error(module, msg)
+            log.error("built-in package %s failed to import: %s", module, msg)
     _builtins_loaded = True
 
 
@@ -61,7 +92,11 @@ def find(name: str, kind: str | None = None) -> type:
         n for n, c in _REGISTRY.items() if kind is None or _kind(c) == kind or _kind(c) == "custom"
     )
     what = f"{kind} " if kind else ""
-    raise RegistryError(f"unknown {what}type '{name}'; registered: {', '.join(names) or '(none)'}")
+    msg = f"unknown {what}type '{name}'; registered: {', '.join(names) or '(none)'}"
+    if _IMPORT_ERRORS:
+        failed = "; ".join(f"{m} ({err})" for m, err in _IMPORT_ERRORS.items())
+        msg += f". It may be defined in a module that failed to import: {failed}"
+    raise RegistryError(msg)
 
 
 def registered() -> Dict[str, type]:

@@ -1,0 +1,20 @@
+#!/usr/bin/env python
+"""Run a gs_regional experiment (threestudio-style).
+
+    python launch.py --config configs/edit.yaml --train [--gpu 0] [key=value ...]
+    python launch.py --config configs/edit.yaml --test resume=outputs/<name>/<trial>/ckpts/last.ckpt
+
+Plugins in custom/ beside this file are imported before the config is read. See
+gs_regional/launcher.py for what happens and where the outputs go.
+"""
+import os
+import sys
+
+if __name__ == "__main__":
+    # Run from a checkout without installing: the package lives beside this file.
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    from gs_regional.launcher import main
+
+    sys.exit(main(sys.argv[1:], custom_dir=os.path.join(here, "custom")))
