@@ -1,1 +1,247 @@
-"""(to be written)"""
+"""Read and write 3D Gaussian Splatting scenes in the INRIA PLY layout.
+
+One `vertex` element, one row per Gaussian, float32, binary little endian, properties in order:
+
+  x y z  nx ny nz  f_dc_0..2  f_rest_0..f_rest_{3(K-1)-1}  opacity  scale_0..2  rot_0..3
+
+with K = (D+1)^2 SH coefficients for degree D. `f_rest` is channel-major: all coefficients of
+red, then green, then blue, so f_rest index = c*(K-1) + k for channel c and coefficient k+1.
+`opacity` is the logit, `scale_*` the log-scales, `rot_*` the quaternion (w, x, y, z).
+
+Any other vertex properties ("extras", e.g. colours or labels some tools add) are read, kept
+per Gaussian and written back after the standard ones with their original types.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from gs_regional.utils.io import atomic_write
+
+SH_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest_* properties -> SH degree
+
+
+class PlyError(ValueError):
+    """A PLY file that cannot be used as a Gaussian scene; the message names the file."""
+
+
+def standard_property_names(sh_degree: int) -> List[str]:
+    """The INRIA vertex property names, in file order, for an SH degree."""
+    k = (sh_degree + 1) ** 2
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+
+
+_NORMALS = ("nx", "ny", "nz")
+# Required properties apart from f_rest (whose count decides the degree); normals are optional.
+_REQUIRED = [n for n in standard_property_names(0) if n not in _NORMALS]
+
+
+@dataclass
+class PlyGaussians:
+    """The contents of a 3DGS PLY as numpy arrays (N Gaussians, K SH coefficients)."""
+
+    means: np.ndarray  # (N, 3) float32
+    sh_dc: np.ndarray  # (N, 3)
+    sh_rest: np.ndarray  # (N, K-1, 3)  [coefficient, channel]
+    opacity_logits: np.ndarray  # (N,)
+    log_scales: np.ndarray  # (N, 3)
+    quats: np.ndarray  # (N, 4) w, x, y, z
+    normals: Optional[np.ndarray] = None  # (N, 3); None -> written as zeros
+    extras: Dict[str, np.ndarray] = field(default_factory=dict)  # name -> (N,), file order
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        k_minus_1 = self.sh_rest.shape[1]
+        degree = {0: 0, 3: 1, 8: 2, 15: 3}.get(k_minus_1)
+        if degree is None:
+            raise PlyError(f"sh_rest has {k_minus_1} coefficients per channel; expected 0, 3, 8 or 15")
+        return degree
+
+
+def _check_file(path: str) -> None:
+    if not os.path.exists(path):
+        raise PlyError(f"{path}: file not found")
+    if os.path.isdir(path):
+        raise PlyError(f"{path}: is a directory, not a PLY file")
+    if os.path.getsize(path) == 0:
+        raise PlyError(f"{path}: empty file (0 bytes), not a PLY file")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic[:3] != b"ply" or magic[3:4] not in (b"\n", b"\r"):
+        raise PlyError(f"{path}: not a PLY file (it does not start with the 'ply' magic line)")
+
+
+def _load_vertex(path: str) -> np.ndarray:
+    from plyfile import PlyData
+
+    try:
+        with open(path, "rb") as f:
+            ply = PlyData.read(f, mmap=False)
+    except Exception as e:  # plyfile's parse errors, truncated data, bad numbers
+        raise PlyError(f"{path}: cannot parse PLY: {type(e).__name__}: {e}") from None
+    names = [el.name for el in ply.elements]
+    if "vertex" not in names:
+        raise PlyError(
+            f"{path}: no 'vertex' element (elements present: {', '.join(names) or 'none'}); "
+            f"a 3DGS PLY stores one vertex per Gaussian"
+        )
+    others = [n for n in names if n != "vertex"]
+    if others:
+        warnings.warn(f"{path}: ignoring non-vertex elements {others}", stacklevel=3)
+    vertex = ply["vertex"]
+    lists = [p.name for p in vertex.properties if hasattr(p, "len_dtype")]
+    if lists:
+        raise PlyError(f"{path}: list properties on 'vertex' are not supported: {', '.join(lists)}")
+    return vertex.data
+
+
+def read_ply(path, drop_nonfinite: bool = False) -> PlyGaussians:
+    """Read a 3DGS PLY. Every problem raises PlyError naming the file.
+
+    With `drop_nonfinite`, Gaussians holding NaN/inf values are dropped with a warning
+    instead of failing.
+    """
+    path = os.fspath(path)
+    _check_file(path)
+    data = _load_vertex(path)
+    n = len(data)
+    names = list(data.dtype.names or ())
+    if n == 0:
+        raise PlyError(f"{path}: the 'vertex' element has 0 vertices: the scene holds no Gaussians")
+
+    missing = [p for p in _REQUIRED if p not in names]
+    if missing:
+        raise PlyError(f"{path}: missing vertex properties: {', '.join(missing)}")
+    rest_names = [p for p in names if p.startswith("f_rest_")]
+    if len(rest_names) not in SH_REST_COUNTS:
+        raise PlyError(
+            f"{path}: has {len(rest_names)} f_rest_* properties; a 3DGS PLY has 0, 9, 24 or 45 "
+            f"(SH degree 0, 1, 2 or 3)"
+        )
+    degree = SH_REST_COUNTS[len(rest_names)]
+    standard = standard_property_names(degree)
+    missing = [p for p in standard if p.startswith("f_rest_") and p not in names]
+    if missing:  # e.g. f_rest_0, f_rest_2, ... with a gap
+        raise PlyError(f"{path}: missing vertex properties: {', '.join(missing)}")
+    extra_names = [p for p in names if p not in standard]
+    for p in extra_names:
+        if data.dtype[p].kind not in "biuf":
+            raise PlyError(f"{path}: vertex property '{p}' has unsupported type {data.dtype[p]}")
+
+    # Non-finite values: count over every floating property (standard and extra).
+    float_names = [p for p in names if data.dtype[p].kind == "f"]
+    bad_rows = np.zeros(n, dtype=bool)
+    bad_props, bad_values = [], 0
+    for p in float_names:
+        bad = ~np.isfinite(data[p])
+        if bad.any():
+            bad_props.append(p)
+            bad_values += int(bad.sum())
+            bad_rows |= bad
+    if bad_rows.any():
+        what = (
+            f"{int(bad_rows.sum())} of {n} Gaussians have NaN/inf values ({bad_values} values, "
+            f"in properties: {', '.join(bad_props)})"
+        )
+        if not drop_nonfinite:
+            raise PlyError(f"{path}: {what}; pass drop_nonfinite=True to drop those Gaussians")
+        if bad_rows.all():
+            raise PlyError(f"{path}: {what}; no Gaussians would remain")
+        warnings.warn(f"{path}: {what}; dropping them", stacklevel=2)
+        data = data[~bad_rows]
+        n = len(data)
+
+    def cols(props: List[str]) -> np.ndarray:
+        return np.stack([np.asarray(data[p], dtype=np.float32) for p in props], axis=1)
+
+    k1 = (degree + 1) ** 2 - 1
+    if k1:
+        # channel-major in the file: (N, 3, K-1) -> (N, K-1, 3)
+        rest = cols([f"f_rest_{i}" for i in range(3 * k1)]).reshape(n, 3, k1).transpose(0, 2, 1)
+    else:
+        rest = np.zeros((n, 0, 3), dtype=np.float32)
+    normals = None
+    if any(p in names for p in _NORMALS):  # a missing component counts as 0
+        normals = np.stack(
+            [np.asarray(data[p], dtype=np.float32) if p in names else np.zeros(n, np.float32) for p in _NORMALS],
+            axis=1,
+        )
+        if not normals.any():
+            normals = None  # INRIA files store zeros; nothing to keep
+    return PlyGaussians(
+        means=cols(["x", "y", "z"]),
+        sh_dc=cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
+        sh_rest=np.ascontiguousarray(rest),
+        opacity_logits=np.asarray(data["opacity"], dtype=np.float32).copy(),
+        log_scales=cols(["scale_0", "scale_1", "scale_2"]),
+        quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        normals=normals,
+        extras={p: np.asarray(data[p]).copy() for p in extra_names},
+    )
+
+
+def write_ply(path, g: PlyGaussians) -> None:
+    """Write `g` atomically in the INRIA layout (float32, binary little endian), extras last."""
+    from plyfile import PlyData, PlyElement
+
+    path = os.fspath(path)
+    n = g.num_gaussians
+    degree = g.sh_degree
+    k1 = (degree + 1) ** 2 - 1
+    shapes = {
+        "means": (g.means, (n, 3)),
+        "sh_dc": (g.sh_dc, (n, 3)),
+        "sh_rest": (g.sh_rest, (n, k1, 3)),
+        "opacity_logits": (g.opacity_logits, (n,)),
+        "log_scales": (g.log_scales, (n, 3)),
+        "quats": (g.quats, (n, 4)),
+    }
+    if g.normals is not None:
+        shapes["normals"] = (g.normals, (n, 3))
+    for name, (arr, shape) in shapes.items():
+        if tuple(arr.shape) != shape:
+            raise PlyError(f"{path}: cannot write: {name} has shape {tuple(arr.shape)}, expected {shape}")
+    for name, arr in g.extras.items():
+        if tuple(arr.shape) != (n,):
+            raise PlyError(f"{path}: cannot write: extra property '{name}' has shape {tuple(arr.shape)}, expected ({n},)")
+    standard = standard_property_names(degree)
+    clash = [p for p in g.extras if p in standard]
+    if clash:
+        raise PlyError(f"{path}: cannot write: extra properties clash with standard ones: {clash}")
+
+    normals = g.normals if g.normals is not None else np.zeros((n, 3), dtype=np.float32)
+    rest = np.asarray(g.sh_rest, dtype=np.float32).transpose(0, 2, 1).reshape(n, 3 * k1)  # channel-major
+    columns = np.concatenate(
+        [
+            np.asarray(g.means, dtype=np.float32),
+            np.asarray(normals, dtype=np.float32),
+            np.asarray(g.sh_dc, dtype=np.float32),
+            rest,
+            np.asarray(g.opacity_logits, dtype=np.float32).reshape(n, 1),
+            np.asarray(g.log_scales, dtype=np.float32),
+            np.asarray(g.quats, dtype=np.float32),
+        ],
+        axis=1,
+    )
+    dtype = [(p, "<f4") for p in standard]
+    dtype += [(p, np.dtype(a.dtype).newbyteorder("<").str) for p, a in g.extras.items()]
+    rows = np.empty(n, dtype=dtype)
+    for i, p in enumerate(standard):
+        rows[p] = columns[:, i]
+    for p, a in g.extras.items():
+        rows[p] = a
+    element = PlyElement.describe(rows, "vertex")
+    with atomic_write(path) as tmp:
+        PlyData([element], text=False, byte_order="<").write(tmp)

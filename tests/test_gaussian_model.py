@@ -1,0 +1,336 @@
+"""GaussianModel: construction, structural ops with optimizers, densification, gradient masking,
+checkpoint resizing."""
+import copy
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import gs_regional
+from gs_regional.geometry.gaussian_model import (
+    DEFAULT_LR,
+    PARAM_NAMES,
+    SH_C0,
+    GaussianModel,
+    knn_sq_dists,
+    quat_to_rotmat,
+)
+
+
+def make_model(n=12, degree=1, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    k1 = (degree + 1) ** 2 - 1
+    return GaussianModel.from_tensors(
+        means=torch.randn(n, 3, generator=g),
+        quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.randn(n, 3, generator=g) - 3,
+        opacity_logits=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 3, generator=g),
+        sh_rest=torch.randn(n, k1, 3, generator=g),
+    )
+
+
+def full_loss(model):
+    """A loss that touches every parameter, so every row gets a non-zero gradient."""
+    return sum((getattr(model, name) ** 2).sum() + getattr(model, name).sum() for name in PARAM_NAMES)
+
+
+def make_adam(model):
+    return torch.optim.Adam(model.optimizer_param_groups(spatial_scale=2.0), eps=1e-15)
+
+
+def adam_step(model, opt):
+    opt.zero_grad()
+    full_loss(model).backward()
+    opt.step()
+
+
+def check_optimizer_state(model, opt):
+    for group in opt.param_groups:
+        p = group["params"][0]
+        assert p is getattr(model, group["name"])  # the same Parameter object
+        st = opt.state[p]
+        assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape
+
+
+def check_buffers(model):
+    n = model.num_gaussians
+    for name in ("mask", "generation", "grad_accum", "grad_count", "max_radii2d"):
+        assert getattr(model, name).shape == (n,), name
+    assert model.extras.shape == (n, len(model.extra_names))
+
+
+def test_registered_and_constructed_from_config(tmp_path):
+    cls = gs_regional.find("gaussian-model")
+    assert cls is GaussianModel
+    m = make_model(5, degree=2)
+    m.save_ply(tmp_path / "s.ply")
+    loaded = cls({"ply": str(tmp_path / "s.ply"), "sh_degree": 0})
+    assert loaded.sh_degree == 2 and len(loaded) == 5  # the file's degree wins
+    assert torch.equal(loaded.sh_rest, m.sh_rest)
+    assert loaded.source_path == str(tmp_path / "s.ply")
+    assert len(cls()) == 0
+
+
+def test_knn_is_exact_with_bounded_chunks():
+    g = torch.Generator().manual_seed(1)
+    x = torch.cat([torch.randn(600, 3, generator=g) * torch.tensor([5.0, 1.0, 0.05]),
+                   torch.randn(200, 3, generator=g) * 0.01 + 30.0])  # dense far cluster
+    x[:3] = x[3]  # duplicates have distance 0
+    got = knn_sq_dists(x, k=3, max_pairs=2000)
+    ref = torch.cdist(x.double(), x.double()).fill_diagonal_(math.inf).pow(2).topk(3, largest=False).values
+    torch.testing.assert_close(got.double(), ref, rtol=1e-4, atol=1e-9)
+    assert knn_sq_dists(x[:2]).shape == (2, 1) and knn_sq_dists(x[:1]).shape == (1, 0)
+
+
+def test_from_points_follows_3dgs_init():
+    g = torch.Generator().manual_seed(2)
+    xyz = torch.rand(300, 3, generator=g)
+    rgb = torch.randint(0, 256, (300, 3), dtype=torch.uint8, generator=g)
+    m = GaussianModel.from_points(xyz, rgb, sh_degree=3, opacity=0.1)
+    assert m.sh_degree == 3 and m.sh_rest.shape == (300, 15, 3) and not m.sh_rest.any()
+    torch.testing.assert_close(m.sh_dc.detach(), (rgb.float() / 255 - 0.5) / SH_C0)
+    d2 = torch.cdist(xyz.double(), xyz.double()).fill_diagonal_(math.inf).pow(2).topk(3, largest=False).values
+    expected = torch.log(torch.sqrt(d2.mean(1).clamp_min(1e-7))).float()
+    torch.testing.assert_close(m.log_scales.detach(), expected[:, None].expand(-1, 3), rtol=1e-4, atol=1e-4)
+    assert torch.equal(m.quats.detach(), torch.tensor([[1.0, 0, 0, 0]]).expand(300, 4))
+    torch.testing.assert_close(m.opacities.detach(), torch.full((300,), 0.1))
+    with pytest.raises(ValueError, match="rgb"):
+        GaussianModel.from_points(xyz, rgb[:5])
+
+
+def test_from_tensors_validates_shapes():
+    with pytest.raises(ValueError, match="quats"):
+        GaussianModel.from_tensors(torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4), torch.zeros(4, 3))
+    m = GaussianModel.from_tensors(torch.zeros(4, 3), torch.ones(4, 4), torch.zeros(4, 3), torch.zeros(4, 1),
+                                   torch.zeros(4, 1, 3), mask=torch.tensor([1, 0, 1, 0]).bool(), generation=torch.ones(4))
+    assert m.sh_degree == 0 and m.mask.tolist() == [True, False, True, False] and m.generation.dtype == torch.long
+
+
+def test_select_is_a_detached_copy(tmp_path):
+    m = make_model(10)
+    m.mask[2:5] = True
+    sel = m.select(m.mask)
+    assert len(sel) == 3 and sel.mask.all() and sel.sh_degree == 1
+    assert torch.equal(sel.means, m.means[2:5])
+    with torch.no_grad():
+        sel.means.add_(1.0)
+    assert not torch.equal(sel.means, m.means[2:5])
+    sel.save_ply(tmp_path / "mask.ply")
+    assert len(GaussianModel.from_ply(tmp_path / "mask.ply")) == 3
+    assert len(m.select(torch.tensor([0, 9]))) == 2
+
+
+def test_prune_and_append_keep_parameters_and_fix_adam_state():
+    m = make_model(12)
+    params_before = [getattr(m, n) for n in PARAM_NAMES]
+    opt = make_adam(m)
+    adam_step(m, opt)
+    exp_avg_before = opt.state[m.means]["exp_avg"].clone()
+
+    keep = torch.ones(12, dtype=torch.bool)
+    keep[[1, 5, 6]] = False
+    assert m.prune(keep, optimizer=opt) == 3
+    assert len(m) == 9
+    check_optimizer_state(m, opt)
+    check_buffers(m)
+    assert torch.equal(opt.state[m.means]["exp_avg"], exp_avg_before[keep])
+    adam_step(m, opt)
+
+    other = make_model(4, seed=5)
+    added = m.append({n: getattr(other, n).detach() for n in PARAM_NAMES}, mask=True, generation=1, optimizer=opt)
+    assert added == 4 and len(m) == 13
+    check_optimizer_state(m, opt)
+    check_buffers(m)
+    assert not opt.state[m.quats]["exp_avg"][9:].any() and not opt.state[m.quats]["exp_avg_sq"][9:].any()
+    assert m.mask.tolist() == [False] * 9 + [True] * 4 and m.generation[9:].tolist() == [1] * 4
+    adam_step(m, opt)
+    m.append(other, optimizer=opt)  # from another model (its own mask/generation)
+    adam_step(m, opt)
+    check_optimizer_state(m, opt)
+    assert [getattr(m, n) for n in PARAM_NAMES] == params_before
+    with pytest.raises(ValueError, match="SH degree"):
+        m.append(make_model(2, degree=0))
+
+
+def _densify_setup():
+    """12 Gaussians: 0-1 small & high gradient (clone), 2-3 large & high gradient (split),
+    4 faint (prune), the rest quiet."""
+    m = make_model(12)
+    with torch.no_grad():
+        m.log_scales[:] = math.log(0.001)
+        m.log_scales[2:4] = math.log(0.5)
+        m.opacity_logits[:] = 2.0
+        m.opacity_logits[4] = -10.0
+    grad = torch.zeros(12, 2)
+    grad[0:4, 0] = 1.0
+    grad[1, 0] = 2.0
+    for _ in range(2):
+        m.add_densification_stats(grad, torch.ones(12, dtype=torch.bool))
+    return m
+
+
+def test_densify_and_prune_with_adam():
+    m = _densify_setup()
+    m.mask[0:3] = True
+    m.generation[3] = 2
+    opt = make_adam(m)
+    adam_step(m, opt)
+    parent_scales = m.scales[2:4].detach().clone()
+    parent_means = m.means[2:4].detach().clone()
+    out = m.densify_and_prune(grad_threshold=0.5, scene_extent=1.0, optimizer=opt)
+    assert out == {"cloned": 2, "split": 2, "pruned": 1}
+    assert len(m) == 12 + 2 + 2 - 1  # +2 clones, +4 split children -2 parents, -1 faint
+    check_optimizer_state(m, opt)
+    check_buffers(m)
+    assert not m.grad_accum.any() and not m.grad_count.any()
+    # children come last: clones of 0, 1 then split samples of 2, 3, 2, 3
+    children = slice(len(m) - 4, len(m))
+    torch.testing.assert_close(m.scales[children].detach(), parent_scales.repeat(2, 1) / 1.6)
+    assert ((m.means[children].detach() - parent_means.repeat(2, 1)).norm(dim=1) < 5 * 0.5).all()
+    assert m.mask[-6:].tolist() == [True, True, True, False, True, False]  # inherited
+    assert m.generation[-6:].tolist() == [0, 0, 0, 2, 0, 2]
+    assert (m.opacities > 0.5).all()
+    adam_step(m, opt)
+
+
+def test_densify_only_mask_and_budget():
+    m = _densify_setup()
+    m.mask[[1, 3]] = True  # 0 (clone) and 2 (split) and 4 (faint) are outside the edit
+    out = m.densify_and_prune(0.5, 1.0, only_mask=True)
+    assert out == {"cloned": 1, "split": 1, "pruned": 0}
+    assert len(m) == 12 + 1 + 1
+    assert m.opacities.min() < 0.01  # the faint unmasked Gaussian survives
+
+    m = _densify_setup()
+    out = m.densify_and_prune(0.5, 1.0, max_gaussians=13)
+    assert out["cloned"] + out["split"] == 1
+    assert out["cloned"] == 1  # Gaussian 1 has the highest gradient
+    assert len(m) <= 13
+
+
+def test_densify_prunes_large_on_screen_and_batched_stats():
+    m = make_model(6)
+    with torch.no_grad():
+        m.log_scales[:] = math.log(0.001)
+        m.opacity_logits[:] = 2.0
+    grads = torch.zeros(2, 6, 2)
+    grads[0, 0] = torch.tensor([3.0, 4.0])  # norm 5, in view 0 only
+    vis = torch.tensor([[True] * 6, [True, False, True, True, True, True]])
+    m.add_densification_stats(grads, vis, radii=torch.tensor([[1.0, 99.0, 1, 1, 1, 1], [2.0, 500.0, 1, 1, 1, 1]]))
+    assert m.grad_accum[0].item() == pytest.approx(5.0) and m.grad_count.tolist() == [2, 1, 2, 2, 2, 2]
+    assert m.max_radii2d[1].item() == 99.0  # not visible in view 1
+    out = m.densify_and_prune(10.0, 1.0, max_screen_size=50)
+    assert out == {"cloned": 0, "split": 0, "pruned": 1} and len(m) == 5
+    with pytest.raises(ValueError, match="means2d_grad"):
+        m.add_densification_stats(torch.zeros(4, 2), torch.ones(4, dtype=torch.bool))
+
+
+def test_reset_opacity_clamps_and_zeroes_state():
+    m = make_model(8)
+    opt = make_adam(m)
+    adam_step(m, opt)
+    m.mask[:4] = True
+    before = m.opacities.detach().clone()
+    m.reset_opacity(0.01, optimizer=opt, only_mask=True)
+    assert (m.opacities[:4] <= 0.01 + 1e-6).all()
+    torch.testing.assert_close(m.opacities[4:].detach(), before[4:])
+    st = opt.state[m.opacity_logits]
+    assert not st["exp_avg"][:4].any() and st["exp_avg"][4:].all()
+    m.reset_opacity(optimizer=opt)
+    assert (m.opacities <= 0.01 + 1e-6).all()
+
+
+def _row_has_grad(p):
+    return p.grad.reshape(p.shape[0], -1).abs().sum(1) > 0
+
+
+def test_gradient_masking_covers_every_parameter_and_survives_changes():
+    m = make_model(10, degree=1)
+    rows = torch.zeros(10, dtype=torch.bool)
+    rows[[0, 3, 4]] = True
+    m.set_trainable_mask(rows)
+    full_loss(m).backward()
+    for name in PARAM_NAMES:
+        assert torch.equal(_row_has_grad(getattr(m, name)), rows), name
+
+    # explicit rows follow prune and append (new rows trainable)
+    keep = torch.ones(10, dtype=torch.bool)
+    keep[3] = False
+    m.prune(keep)
+    m.append(make_model(2, seed=9))
+    full_loss(m).backward()
+    expected = torch.tensor([True, False, False, True] + [False] * 5 + [True, True])  # old 4 is now 3
+    for name in PARAM_NAMES:
+        assert torch.equal(_row_has_grad(getattr(m, name)), expected), name
+
+    # the "editable" rule is evaluated at backward time: mask | generation > 0
+    m.zero_grad(set_to_none=True)
+    m.set_trainable_mask("editable")
+    m.mask.zero_()
+    m.mask[1] = True
+    m.append(make_model(3, seed=4), generation=1)
+    opt = make_adam(m)
+    out = copy.deepcopy(m)  # hooks are re-registered on the copy's parameters
+    for model in (m, out):
+        model.zero_grad(set_to_none=True)
+        full_loss(model).backward()
+        expected = torch.zeros(len(model), dtype=torch.bool)
+        expected[1] = True
+        expected[-3:] = True
+        for name in PARAM_NAMES:
+            assert torch.equal(_row_has_grad(getattr(model, name)), expected), name
+    before = m.means.detach().clone()
+    opt.step()
+    assert torch.equal(m.means[0], before[0]) and not torch.equal(m.means[1], before[1])
+
+    m.set_trainable_mask(None)
+    m.zero_grad(set_to_none=True)
+    full_loss(m).backward()
+    assert _row_has_grad(m.quats).all()
+    with pytest.raises(ValueError, match="shape"):
+        m.set_trainable_mask(torch.ones(3, dtype=torch.bool))
+
+
+def test_state_dict_load_resizes_and_keeps_parameters():
+    big = make_model(10, degree=1)
+    big.mask[2] = True
+    big.generation[7] = 1
+    big.add_densification_stats(torch.ones(10, 2), torch.ones(10, dtype=torch.bool))
+    big.set_trainable_mask("editable")
+    state = big.state_dict()
+
+    small = make_model(3, degree=0, seed=3)
+    params = [getattr(small, n) for n in PARAM_NAMES]
+    opt = make_adam(small)
+    small.load_state_dict(state)
+    assert len(small) == 10 and small.sh_degree == 1
+    assert [getattr(small, n) for n in PARAM_NAMES] == params
+    assert [g["params"][0] for g in opt.param_groups] == params
+    for key, value in state.items():
+        if torch.is_tensor(value):
+            assert torch.equal(small.state_dict()[key], value), key
+    assert small.trainable_rows().tolist() == big.editable_rows().tolist()
+    adam_step(small, opt)  # the optimizer works on the resized parameters
+
+
+def test_optimizer_param_groups():
+    m = make_model(3)
+    groups = m.optimizer_param_groups({"sh_dc": 0.01}, spatial_scale=5.0)
+    by_name = {g["name"]: g for g in groups}
+    assert set(by_name) == set(PARAM_NAMES)
+    assert by_name["means"]["lr"] == pytest.approx(DEFAULT_LR["means"] * 5.0)
+    assert by_name["sh_dc"]["lr"] == 0.01 and by_name["sh_rest"]["lr"] == pytest.approx(2.5e-3 / 20)
+    assert by_name["quats"]["params"][0] is m.quats
+    with pytest.raises(ValueError, match="colour"):
+        m.optimizer_param_groups({"colour": 1.0})
+
+
+def test_quat_to_rotmat_is_a_rotation():
+    r = quat_to_rotmat(torch.randn(5, 4))
+    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3).expand(5, 3, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.det(r), torch.ones(5))
+    assert torch.equal(quat_to_rotmat(torch.tensor([2.0, 0, 0, 0])), torch.eye(3))
+    np.testing.assert_allclose(quat_to_rotmat(torch.tensor([math.cos(0.5), 0, 0, math.sin(0.5)]))[:2, :2].numpy(),
+                               [[math.cos(1), -math.sin(1)], [math.sin(1), math.cos(1)]], atol=1e-6)
