@@ -1,1 +1,112 @@
-"""(to be written)"""
+"""`simulated-depth`: a SIMULATED monocular depth estimator for the synthetic scene.
+
+Returns the TRUE disparity (1 / rendered depth where the render's alpha is high; background
+pixels get the far value 0) of the scene an image shows, under an unknown affine map plus
+corruption, like the relative disparity a real estimator (Depth Anything) returns:
+
+  * which scene: the image is compared (mean squared error) with the renders of the source and of
+    the true edited scene at its camera, and the nearer one is used, for the whole image;
+  * affine map: scale log-uniform in [0.5, 5] and shift in [-0.5, 0.5] x the mean disparity, drawn
+    from (seed, camera), so it is unknown to the caller and differs between views but is the same
+    for the edited and the unedited image of one view (a real estimator shows two near-identical
+    images alike);
+  * corruption (0 = exact): Gaussian noise of `noise * corruption` x the image's disparity range
+    and a fraction `outliers * corruption` of pixels replaced by random values in that range.
+
+Images must come with their `cameras=`. The scene is `make_edit(edit, scene_seed, ...)` unless a
+ground truth is handed over with `set_ground_truth` (e.g. `SceneData.ground_truth`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import torch
+
+from gs_regional.data.cameras import Camera
+from gs_regional.data.synthetic import EDIT_NAMES, TruthRenderer, camera_for_image, camera_seed, make_edit
+from gs_regional.depth.base import DepthEstimator
+from gs_regional.guidance.base import check_images
+from gs_regional.registry import register
+
+
+@register("simulated-depth")
+class SimulatedDepth(DepthEstimator):
+    @dataclass
+    class Config:
+        seed: int = 0  # draws the per-view affine map and the noise
+        edit: str = "recolor"  # the ground-truth edit whose edited scene images may show
+        scene_seed: int = 0  # must match the data module's seed
+        n_object: int = 6000  # must match the data module
+        n_background: int = 4000  # must match the data module
+        renderer: str = "torch-rasterizer"
+        background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+        corruption: float = 1.0  # overall strength of the corruption below (0: exact up to the affine map)
+        noise: float = 0.01  # noise std as a fraction of the image's disparity range, at corruption 1
+        outliers: float = 0.005  # fraction of pixels replaced by random values, at corruption 1
+        alpha_threshold: float = 0.5  # below this rendered alpha a pixel is background (far)
+        max_cached_views: int = 512
+
+    def __init__(self, cfg=None, where: str = "") -> None:
+        super().__init__(cfg, where or "system.depth")
+        if self.cfg.edit not in EDIT_NAMES:
+            raise ValueError(f"simulated-depth: unknown edit '{self.cfg.edit}'; known: {', '.join(EDIT_NAMES)}")
+        if self.cfg.corruption < 0:
+            raise ValueError(f"simulated-depth: corruption must be >= 0, got {self.cfg.corruption}")
+        self._truth: Optional[TruthRenderer] = None
+        self.last_choice: List[str] = []  # "source" / "edited" per image of the last call
+
+    def set_ground_truth(self, gt: Dict) -> None:
+        for key in ("source", "edited"):
+            if key not in gt:
+                raise ValueError(f"simulated-depth: ground truth lacks '{key}' (expected a make_edit() dict)")
+        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
+
+    @property
+    def truth(self) -> TruthRenderer:
+        if self._truth is None:
+            c = self.cfg
+            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
+        return self._truth
+
+    def true_disparity(self, depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """1 / depth where alpha is high, 0 (far) elsewhere."""
+        valid = (alpha > self.cfg.alpha_threshold) & (depth > 1e-6)
+        return torch.where(valid, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
+
+    def disparity(self, images: torch.Tensor, cameras: Optional[Sequence[Camera]] = None) -> torch.Tensor:
+        images = check_images(images)
+        if cameras is None:
+            raise ValueError(
+                "simulated-depth.disparity needs cameras=[one Camera per image]: it renders the true "
+                "depth of the synthetic scene (it is a simulator, not a depth network)"
+            )
+        cameras = list(cameras)
+        if len(cameras) != images.shape[0]:
+            raise ValueError(f"simulated-depth: {images.shape[0]} images but {len(cameras)} cameras")
+        h, w = images.shape[1:3]
+        c = self.cfg
+        out, self.last_choice = [], []
+        for img, cam in zip(images.detach().float().cpu(), cameras):
+            cam = camera_for_image(cam, h, w, "simulated-depth")
+            v = self.truth.views(cam)
+            err_src = float(((img - v["src_rgb"]) ** 2).mean())
+            err_edit = float(((img - v["edit_rgb"]) ** 2).mean())
+            tag = "edit" if err_edit < err_src else "src"
+            self.last_choice.append("edited" if tag == "edit" else "source")
+            disp = self.true_disparity(v[f"{tag}_depth"], v[f"{tag}_alpha"])
+
+            # the affine map depends on (seed, camera) only; the noise also on which scene it is
+            gen = torch.Generator().manual_seed((c.seed * 1_000_003 + camera_seed(cam)) % (2**61 - 1))
+            scale = math.exp(float(torch.empty(1).uniform_(math.log(0.5), math.log(5.0), generator=gen)))
+            shift = float(torch.empty(1).uniform_(-0.5, 0.5, generator=gen)) * float(disp.mean())
+            rel = scale * disp + shift
+            if c.corruption > 0:
+                gen = torch.Generator().manual_seed((c.seed * 1_000_003 + camera_seed(cam) * 2 + (tag == "edit")) % (2**61 - 1))
+                lo, hi = float(rel.min()), float(rel.max())
+                rel = rel + torch.randn(rel.shape, generator=gen) * c.noise * c.corruption * (hi - lo)
+                hit = torch.rand(rel.shape, generator=gen) < c.outliers * c.corruption
+                rel = torch.where(hit, lo + (hi - lo) * torch.rand(rel.shape, generator=gen), rel)
+            out.append(rel)
+        return torch.stack(out).to(images.device)

@@ -1,1 +1,267 @@
-"""(to be written)"""
+"""`simulated-editor`: a SIMULATOR of a 2D instruction editor, NOT a diffusion model.
+
+It answers `relevance` and `edit` by rendering the synthetic scene's TRUE edited scene
+(`gs_regional.data.synthetic.make_edit`) at the camera of each image, then degrading the answer
+with the failure modes a real InstructPix2Pix shows, each with a configurable strength:
+
+  relevance: the true region's rendered weight, grown by `spread` px and blurred (`blur`), with
+             spatially correlated noise (`noise`), fading in views far from the front
+             (`side_miss_*`: fully missed beyond `side_miss_end` degrees, as IP2P loses the
+             region in side views), plus `leakage`: a
+             related part that should not change (e.g. the body under the head) lights up at a
+             fraction of the peak. Normalised per view to [0, 1] like the real maps.
+  edit:      the true edited render, shifted by a per-view `position_jitter` (px) and recoloured by
+             a per-view `color_jitter`, both seeded by (config seed, call seed, camera) and growing
+             with t_start (largest for a full edit from pure noise, t_start=None); a little `bleed`
+             of the edit's colour a couple of pixels past its area; then blended into the input
+             as lerp(images, target, k(t_start)) with k = 1 - alphabar(t_start) of Stable
+             Diffusion's schedule (k(None) = 1), so an edit from a lower t_start keeps more of the
+             input, as partial denoising does. Only where the source and edited renders differ
+             (plus bleed) is the image changed; elsewhere the input comes back with tiny noise.
+
+It exists so that the 3D part of the method (lifting masks, depth-initialised geometry, sequential
+refinement) can be measured against a known answer on CPU. The prompt is not read: the edit is the
+configured one (`edit`); `cond_images` are validated but the camera defines the view. Images must
+come with their `cameras=`. Counters report what a real IP2P run would spend: 3*B UNet evaluations
+per denoising step for the steps at or below t_start out of `num_inference_steps` (DDIM, leading
+spacing, offset 1, as diffusers sets it up for Stable Diffusion), 2*B per relevance sample.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from gs_regional.data.cameras import Camera
+from gs_regional.data.synthetic import (
+    EDIT_NAMES,
+    TARGET,
+    TruthRenderer,
+    camera_for_image,
+    camera_seed,
+    make_edit,
+)
+from gs_regional.guidance.base import Guidance, check_images, gaussian_blur
+from gs_regional.registry import register
+
+
+def _alphas_cumprod() -> torch.Tensor:
+    """Stable Diffusion's training schedule (scaled linear betas 0.00085 -> 0.012, 1000 steps)."""
+    betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2
+    return torch.cumprod(1 - betas, 0)
+
+
+_ALPHAS_CUMPROD = _alphas_cumprod()
+
+
+def edit_strength(t_start: Optional[int]) -> float:
+    """How much of the input a partial denoise from t_start replaces: 1 - alphabar_t (1 for None)."""
+    if t_start is None:
+        return 1.0
+    t = min(max(int(t_start), 0), 999)
+    return float(1 - _ALPHAS_CUMPROD[t])
+
+
+def denoising_steps(t_start: Optional[int], num_inference_steps: int = 20) -> int:
+    """Denoising steps a DDIM run from t_start takes (None: all of them)."""
+    if t_start is None:
+        return num_inference_steps
+    ratio = 1000 // num_inference_steps
+    timesteps = [i * ratio + 1 for i in range(num_inference_steps)]  # leading spacing, offset 1
+    return sum(1 for t in timesteps if t <= t_start)
+
+
+def _mix_seed(*parts: int) -> int:
+    s = 0
+    for p in parts:
+        s = (s * 1_000_003 + int(p)) % (2**61 - 1)
+    return s
+
+
+def _shift(x: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
+    """Translate (H, W, C) by (dx, dy) pixels, bilinear, edges repeated."""
+    h, w = x.shape[:2]
+    ys = torch.arange(h, dtype=x.dtype) - dy
+    xs = torch.arange(w, dtype=x.dtype) - dx
+    gy, gx = torch.meshgrid(2 * (ys + 0.5) / h - 1, 2 * (xs + 0.5) / w - 1, indexing="ij")
+    grid = torch.stack([gx, gy], -1)[None]
+    out = F.grid_sample(x.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out[0].permute(1, 2, 0)
+
+
+@register("simulated-editor")
+class SimulatedEditor(Guidance):
+    @dataclass
+    class Config:
+        seed: int = 0  # base seed of the per-view randomness (combined with the call's seed and the camera)
+        edit: str = "recolor"  # the ground-truth edit it simulates: recolor | add | global
+        scene_seed: int = 0  # the synthetic scene (must match the data module's seed)
+        n_object: int = 6000  # must match the data module
+        n_background: int = 4000  # must match the data module
+        renderer: str = "torch-rasterizer"
+        background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # as the data module
+        # --- relevance failure modes ---
+        spread: int = 1  # px, the map covers a little more than the region (real maps are blobby)
+        blur: float = 1.5  # px, Gaussian blur of the map (real maps are soft, from 64x64 latents)
+        noise: float = 0.1  # std of spatially correlated noise, relative to the region's peak
+        noise_scale: float = 2.0  # px, correlation length of that noise
+        side_miss_start: float = 60.0  # degrees from the front where the region starts to fade
+        side_miss_end: float = 110.0  # degrees beyond which the region is missed completely
+        leakage: float = 0.35  # the related part lights up at this fraction of the region's peak
+        # --- edit failure modes (values at a full edit, t_start=None; scaled by t_start/1000) ---
+        color_jitter: float = 0.06  # std of the per-view colour gain (offset: half of it)
+        position_jitter: float = 1.5  # px, std of the per-view shift of the edit
+        bleed: float = 2.0  # px, how far the edit's colour spreads past its area
+        bleed_strength: float = 0.5  # how strongly it does
+        residual_noise: float = 0.003  # std of the noise on the rest of the image
+        edit_threshold: float = 0.02  # a pixel is part of the edit where renders differ by more
+        num_inference_steps: int = 20  # only for counting UNet evaluations
+        max_cached_views: int = 512  # renders of the true scenes kept per camera
+
+    def __init__(self, cfg=None, where: str = "") -> None:
+        super().__init__(cfg, where or "system.guidance")
+        if self.cfg.edit not in EDIT_NAMES:
+            raise ValueError(f"simulated-editor: unknown edit '{self.cfg.edit}'; known: {', '.join(EDIT_NAMES)}")
+        if not 0 <= self.cfg.side_miss_start <= self.cfg.side_miss_end:
+            raise ValueError("simulated-editor: need 0 <= side_miss_start <= side_miss_end (degrees)")
+        self._truth: Optional[TruthRenderer] = None
+
+    # ------------------------------------------------------------------ ground truth
+    def set_ground_truth(self, gt: Dict) -> None:
+        """Use an existing ground truth (e.g. `SceneData.ground_truth`) instead of building one."""
+        for key in ("source", "edited", "region", "part_labels", "part_names"):
+            if key not in gt:
+                raise ValueError(f"simulated-editor: ground truth lacks '{key}' (expected a make_edit() dict)")
+        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
+
+    @property
+    def truth(self) -> TruthRenderer:
+        if self._truth is None:
+            c = self.cfg
+            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
+        return self._truth
+
+    def _cameras(self, images: torch.Tensor, cameras, op: str) -> List[Camera]:
+        if cameras is None:
+            raise ValueError(
+                f"simulated-editor.{op} needs cameras=[one Camera per image]: it renders the true "
+                f"edited scene at each view (it is a simulator, not a diffusion model)"
+            )
+        cameras = list(cameras)
+        if len(cameras) != images.shape[0]:
+            raise ValueError(f"simulated-editor.{op}: {images.shape[0]} images but {len(cameras)} cameras")
+        h, w = images.shape[1:3]
+        return [camera_for_image(c, h, w, f"simulated-editor.{op}") for c in cameras]
+
+    def _angle_from_front(self, camera: Camera) -> float:
+        front = self.truth.gt.get("front")
+        front = torch.tensor([0.0, 0.0, 1.0]) if front is None else torch.as_tensor(front).float().cpu()
+        d = camera.center.cpu() - torch.tensor(TARGET)
+        cos = float(d @ front / (d.norm() * front.norm()).clamp_min(1e-9))
+        return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+    # ------------------------------------------------------------------ relevance
+    def relevance(
+        self,
+        images: torch.Tensor,
+        prompt: str,
+        timestep: int = 600,
+        samples: int = 1,
+        seed: int = 0,
+        cameras: Optional[Sequence[Camera]] = None,
+    ) -> torch.Tensor:
+        images = check_images(images)
+        cams = self._cameras(images, cameras, "relevance")
+        c = self.cfg
+        samples = max(1, int(samples))
+        out = []
+        for cam in cams:
+            maps = self.truth.region_maps(cam)
+            region, related = maps[..., 0], maps[..., 1]
+            if c.spread > 0:
+                k = 2 * int(c.spread) + 1
+                region = F.max_pool2d(region[None, None], k, 1, k // 2)[0, 0]
+            a = self._angle_from_front(cam)
+            span = max(c.side_miss_end - c.side_miss_start, 1e-6)
+            fade = min(max((c.side_miss_end - a) / span, 0.0), 1.0)
+            gen = torch.Generator().manual_seed(_mix_seed(c.seed, seed, camera_seed(cam), 1))
+            noise = torch.zeros_like(region)
+            for _ in range(samples):  # averaging samples reduces the noise, as with the real model
+                n = gaussian_blur(torch.randn(1, *region.shape, generator=gen), c.noise_scale)[0]
+                noise += n / n.std().clamp_min(1e-8)
+            raw = fade * region + c.leakage * related + c.noise * noise / samples
+            raw = gaussian_blur(raw[None], c.blur)[0].clamp_min(0)
+            peak = raw.max()
+            out.append(raw / peak if peak > 1e-8 else torch.zeros_like(raw))
+        b = images.shape[0]
+        self.unet_evals += 2 * b * samples  # conditional + unconditional prediction per sample
+        self.vae_encodes += b
+        return torch.stack(out).to(images.device)
+
+    # ------------------------------------------------------------------ edit
+    def _jitter(self, camera: Camera, seed: int, t_start: Optional[int]):
+        c = self.cfg
+        scale = 1.0 if t_start is None else min(max(t_start, 0), 1000) / 1000.0
+        gen = torch.Generator().manual_seed(_mix_seed(c.seed, seed, camera_seed(camera), 2))
+        shift = torch.randn(2, generator=gen, dtype=torch.float64) * c.position_jitter * scale
+        gain = 1 + torch.randn(3, generator=gen) * c.color_jitter * scale
+        offset = torch.randn(3, generator=gen) * c.color_jitter * 0.5 * scale
+        return shift, gain, offset, gen
+
+    def view_jitter(self, camera: Camera, seed: int = 0, t_start: Optional[int] = None) -> Dict[str, torch.Tensor]:
+        """The per-view perturbation `edit` applies at this camera: shift (dx, dy) in pixels,
+        colour gain (3,) and offset (3,); they grow with t_start (largest for None)."""
+        shift, gain, offset, _ = self._jitter(camera, seed, t_start)
+        return {"shift": shift.float(), "gain": gain, "offset": offset}
+
+    def edit(
+        self,
+        images: torch.Tensor,
+        cond_images: torch.Tensor,
+        prompt: str,
+        t_start: Optional[int] = None,
+        seed: int = 0,
+        cameras: Optional[Sequence[Camera]] = None,
+    ) -> torch.Tensor:
+        images = check_images(images)
+        cond_images = check_images(cond_images, "cond_images")
+        if cond_images.shape != images.shape:
+            raise ValueError(f"cond_images {tuple(cond_images.shape)} must match images {tuple(images.shape)}")
+        cams = self._cameras(images, cameras, "edit")
+        c = self.cfg
+        steps = denoising_steps(t_start, c.num_inference_steps)
+        if t_start is not None and not 0 <= t_start < 1000:
+            raise ValueError(f"simulated-editor.edit: t_start must be in [0, 1000) or None, got {t_start}")
+        if steps == 0:
+            raise ValueError(f"simulated-editor.edit: t_start={t_start} is below the last DDIM timestep (1): nothing to denoise")
+        k = edit_strength(t_start)
+        out = []
+        for img, cam in zip(images.detach().float().cpu(), cams):
+            v = self.truth.views(cam)
+            shift, gain, offset, gen = self._jitter(cam, seed, t_start)
+            diff = torch.maximum((v["edit_rgb"] - v["src_rgb"]).abs().amax(-1), (v["edit_alpha"] - v["src_alpha"]).abs())
+            area = ((diff - c.edit_threshold) / (2 * c.edit_threshold)).clamp(0, 1)  # soft edges
+            moved = _shift(torch.cat([v["edit_rgb"], area[..., None]], -1), float(shift[0]), float(shift[1]))
+            target = (moved[..., :3] * gain + offset).clamp(0, 1)
+            area = moved[..., 3].clamp(0, 1)
+            weight, colour = area, target
+            if c.bleed > 0 and c.bleed_strength > 0:
+                spread = gaussian_blur(area[None], c.bleed)[0]
+                ring = ((2 * spread).clamp(0, 1) * (1 - area) * c.bleed_strength)
+                # the edit's own colour carried outwards (normalised convolution)
+                carried = torch.stack([gaussian_blur((target[..., i] * area)[None], c.bleed)[0] for i in range(3)], -1)
+                carried = carried / spread[..., None].clamp_min(1e-6)
+                weight = area + ring
+                colour = (area[..., None] * target + ring[..., None] * carried) / weight[..., None].clamp_min(1e-6)
+            w = (k * weight)[..., None]
+            edited = img * (1 - w) + colour * w
+            edited = edited + c.residual_noise * torch.randn(edited.shape, generator=gen)
+            out.append(edited.clamp(0, 1))
+        b = images.shape[0]
+        self.unet_evals += 3 * b * steps
+        self.vae_encodes += b + (b if t_start is not None else 0)  # condition image (+ the input to noise)
+        self.vae_decodes += b
+        return torch.stack(out).to(images.device, images.dtype)
