@@ -1,1 +1,323 @@
-"""(to be written)"""
+"""`regional-edit`: localize → initialize → conditional sequential refinement (DESIGN.md §3)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import torch
+
+from gs_regional.config import ConfigError
+from gs_regional.edit.initialize import InitConfig, dilate, new_gaussians_from_depth
+from gs_regional.edit.localize import expand_selection, lift_masks, mask_metrics, render_selection
+from gs_regional.edit.views import nearest_cameras, spread_subset
+from gs_regional.registry import find, register
+from gs_regional.systems.edit_base import EditSystemBase
+
+
+@dataclass
+class LocalizeConfig:
+    max_views: int = 24  # views rendered for the 2D relevance maps, spread over the cameras
+    timestep: int = 600  # τ of the noise difference
+    gamma: float = 0.6  # threshold of the normalised relevance; 0 selects everything
+    samples: int = 1  # noise draws averaged per view
+    blur_sigma: float = 2.0  # Gaussian filter that removes isolated specks (pixels)
+    mask_threshold: float = 0.5  # a Gaussian is selected if its weighted mask vote exceeds this
+    expand_radius: float = 0.0  # point expansion radius, as a fraction of the scene extent (0 = off)
+
+
+@dataclass
+class RefineConfig:
+    cycles: int = 3
+    t_schedule: List[int] = field(default_factory=lambda: [750, 500, 250])  # start timestep per cycle
+    constant_t: Optional[int] = None  # ablation: one start timestep for every cycle
+    iterations_per_cycle: int = 500
+    m: int = 20  # nearest cameras edited around the cycle's frontal view
+    optimize_all: bool = False  # let gradients reach every Gaussian (the paper's setting)
+    densify: bool = True
+    densify_every: int = 100
+    grad_threshold: float = 0.0002
+    densify_budget: int = 20000  # at most this many Gaussians added by densification in total
+
+
+@register("regional-edit")
+class RegionalEdit(EditSystemBase):
+    @dataclass
+    class Config(EditSystemBase.Config):
+        depth_type: str = "depth-anything"
+        depth: dict = field(default_factory=dict)
+        localize: bool = True  # ablation: false selects every Gaussian
+        initialize: bool = True  # ablation: false adds no Gaussians from depth
+        localization: LocalizeConfig = field(default_factory=LocalizeConfig)
+        init: InitConfig = field(default_factory=InitConfig)
+        refine: RefineConfig = field(default_factory=RefineConfig)
+
+    def __init__(self, cfg=None, resumed: bool = False) -> None:
+        super().__init__(cfg, resumed=resumed)
+        self.configure()
+        r = self.cfg.refine
+        if r.constant_t is None and len(r.t_schedule) < r.cycles:
+            raise ConfigError(
+                f"system.refine.t_schedule has {len(r.t_schedule)} timesteps for {r.cycles} cycles; "
+                "give one start timestep per cycle (or system.refine.constant_t)"
+            )
+        self.depth_estimator = None
+        if self.cfg.initialize:
+            self.depth_estimator = find(self.cfg.depth_type, kind="depth")(self.cfg.depth)
+        # Edit state (all of it goes into checkpoints).
+        self.phase = "localize"  # localize -> initialize -> refine -> done
+        self.v_first: Optional[int] = None
+        self.cycle_targets: Optional[torch.Tensor] = None  # (k, H, W, 3) edited views of a cycle
+        self.cycle_views: List[int] = []
+        self.targets_cycle = -1
+        self.edited_views: List[int] = []
+        self.masks2d: Optional[torch.Tensor] = None
+        self.first_edit: Optional[torch.Tensor] = None
+        self.refine_start_count = 0
+
+    @property
+    def total_steps(self) -> int:
+        return self.cfg.refine.cycles * self.cfg.refine.iterations_per_cycle
+
+    def start_timestep(self, cycle: int) -> int:
+        r = self.cfg.refine
+        return int(r.constant_t if r.constant_t is not None else r.t_schedule[cycle])
+
+    # ----- stage 1 -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def run_localize(self) -> None:
+        self.set_stage("localize")
+        t0 = time.perf_counter()
+        cfg, lc, scene = self.cfg, self.cfg.localization, self.scene
+        g = self.geometry
+        views = spread_subset(scene.train_indices, lc.max_views)
+        self.localize_views = views
+        if not cfg.localize or lc.gamma <= 0:
+            selected = torch.ones(g.num_gaussians, dtype=torch.bool, device=self.device)
+            masks = None
+        else:
+            images = torch.stack([self.source_renders[i] for i in views])
+            cams = [scene.cameras[i] for i in views]
+            masks = self.guidance.mask(
+                images, cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
+                samples=lc.samples, seed=cfg.seed, cameras=cams,
+            )
+            scores = lift_masks(g, self.renderer, [c.to(self.device) for c in cams], masks)
+            selected = scores > lc.mask_threshold
+            selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
+            for k, i in enumerate(views):
+                self.save_image(f"localize/mask2d_{i:03d}.png", self.overlay(self.source_renders[i], masks[k]))
+        g.mask.copy_(selected)
+        self.counts["selected"] = int(selected.sum())
+        self.masks2d = masks
+        self.add_time("localize", time.perf_counter() - t0)
+        if self.scene.ground_truth is not None:
+            self.localize_metrics = mask_metrics(selected.cpu(), self.scene.ground_truth["region"].cpu())
+        else:
+            self.localize_metrics = {}
+        for i in views:
+            m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
+            self.save_image(f"localize/mask3d_{i:03d}.png", self.overlay(self.source_renders[i], m3 > 0.5))
+        if selected.any():
+            g.select(selected).save_ply(str(self.save_dir / "mask.ply"))
+        self.phase = "initialize"
+
+    # ----- stage 2 -------------------------------------------------------------------------------
+    def rendered_mask(self, index: int) -> torch.Tensor:
+        return render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask) > 0.5
+
+    @torch.no_grad()
+    def run_initialize(self) -> None:
+        self.set_stage("initialize")
+        t0 = time.perf_counter()
+        cfg, scene, g = self.cfg, self.scene, self.geometry
+        views = self.localize_views
+        areas = torch.stack([self.rendered_mask(i).sum() for i in views])
+        self.v_first = views[int(torch.argmax(areas))]
+        v = self.v_first
+        cam = scene.cameras[v]
+        unedited = self.source_renders[v]
+        edited = self.guidance.edit(unedited[None], unedited[None], cfg.prompt, t_start=None, seed=cfg.seed, cameras=[cam])[0]
+        self.first_edit = edited.to(self.device)
+        self.save_image("initialize/first_view_source.png", unedited)
+        self.save_image("initialize/first_view_edited.png", edited)
+        if cfg.initialize:
+            out = self.render_view(v)
+            region = self.rendered_mask(v)
+            if self.masks2d is not None and v in views:
+                region = region | self.masks2d[views.index(v)].bool().to(self.device)
+            disp = self.depth_estimator.disparity(torch.stack([unedited, edited.to(self.device)]), cameras=[cam, cam])
+            params, report, d_new = new_gaussians_from_depth(
+                cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree
+            )
+            n = params["means"].shape[0]
+            if n:
+                g.append(
+                    params,
+                    mask=torch.ones(n, dtype=torch.bool, device=self.device),
+                    generation=torch.ones(n, dtype=torch.long, device=self.device),
+                    optimizer=self.optimizers().optimizer,
+                )
+            self.counts["added_init"] = n
+            self.init_report = report
+            self.save_image("initialize/depth_unedited.png", _normalize(disp[0]))
+            self.save_image("initialize/depth_edited.png", _normalize(disp[1]))
+            self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
+            self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
+            print(
+                f"initialize: added {n} Gaussians from the depth of view {v} "
+                f"({report['skipped_unchanged']} region pixels unchanged, {report['skipped_by_stride']} skipped by "
+                f"stride, {report['skipped_by_cap']} over the cap of {cfg.init.max_new})"
+            )
+        else:
+            self.counts["added_init"] = 0
+        self.edited_views = [v]
+        self.refine_start_count = g.num_gaussians
+        self.set_trainable()
+        self.add_time("initialize", time.perf_counter() - t0)
+        self.phase = "refine"
+
+    def set_trainable(self) -> None:
+        g = self.geometry
+        # "editable" = mask | generation > 0, re-evaluated at every backward pass.
+        g.set_trainable_mask(None if self.cfg.refine.optimize_all else "editable")
+
+    # ----- stage 3 -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def edit_cycle_views(self, cycle: int) -> None:
+        r, cfg, scene = self.cfg.refine, self.cfg, self.scene
+        self.set_stage(f"refine {cycle + 1}/{r.cycles}: editing views")
+        t0 = time.perf_counter()
+        if cycle == 0:
+            frontal = self.v_first
+        else:
+            gen = torch.Generator().manual_seed(cfg.seed * 7919 + cycle)
+            frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
+        near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
+        views = [frontal] + near  # in order of distance
+        t = self.start_timestep(cycle)
+        targets = []
+        for k, j in enumerate(views):
+            if cycle == 0 and j == self.v_first:
+                targets.append(self.first_edit)
+                continue
+            current = self.render_view(j)["rgb"].clamp(0, 1)
+            edited = self.guidance.edit(
+                current[None], self.source_renders[j][None], cfg.prompt, t_start=t,
+                seed=cfg.seed + 1000 * (cycle + 1) + j, cameras=[scene.cameras[j]],
+            )[0]
+            targets.append(edited.to(self.device))
+        self.cycle_targets = torch.stack(targets)
+        self.cycle_views = views
+        self.targets_cycle = cycle
+        self.edited_views = sorted(set(self.edited_views) | set(views))
+        shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
+        self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
+        self.add_time("refine_edit", time.perf_counter() - t0)
+
+    def training_step(self, batch, batch_idx):
+        if self.phase == "localize":
+            self.run_localize()
+            if not bool(self.geometry.mask.any()):
+                print(
+                    "localize: no Gaussian was selected for the prompt; nothing to edit. Try a lower "
+                    "system.localization.gamma or system.localization.mask_threshold. The source scene is "
+                    "written out unchanged."
+                )
+                self.phase = "done"
+                self.trainer.should_stop = True
+                self.write_outputs({"stopped": "empty selection", **self.localize_metrics})
+                return None
+        if self.phase == "initialize":
+            self.run_initialize()
+        if self.phase != "refine":
+            return None
+        r = self.cfg.refine
+        step = self.global_step
+        cycle, it = divmod(step, r.iterations_per_cycle)
+        if cycle >= r.cycles:
+            return None
+        if self.targets_cycle != cycle:
+            self.edit_cycle_views(cycle)
+        self.set_stage(f"refine {cycle + 1}/{r.cycles}")
+        t0 = time.perf_counter()
+        # Stateless per-step choice of view, so a resumed run makes the same choices.
+        gen = torch.Generator().manual_seed(self.cfg.seed * 104729 + step)
+        k = int(torch.randint(len(self.cycle_views), (1,), generator=gen))
+        out = self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify_stats=r.densify)
+        if r.densify and it > 0 and it % r.densify_every == 0 and it < r.iterations_per_cycle - 1:
+            with torch.no_grad():
+                rep = self.geometry.densify_and_prune(
+                    grad_threshold=r.grad_threshold,
+                    scene_extent=self.scene.extent,
+                    only_mask=not r.optimize_all,
+                    max_gaussians=self.refine_start_count + r.densify_budget,
+                    optimizer=self.optimizers().optimizer,
+                )
+            self.counts["densified"] = self.counts.get("densified", 0) + rep.get("cloned", 0) + rep.get("split", 0)
+            self.counts["pruned"] = self.counts.get("pruned", 0) + rep.get("pruned", 0)
+        self.add_time("refine_train", time.perf_counter() - t0)
+        return None
+
+    def on_train_end(self) -> None:
+        if self.phase == "done":
+            return
+        extra = dict(self.localize_metrics) if hasattr(self, "localize_metrics") else {}
+        extra["v_first"] = self.v_first
+        extra["edited_views"] = len(self.edited_views)
+        if getattr(self, "init_report", None):
+            extra["init"] = self.init_report
+        self.write_outputs(extra)
+
+    def evaluation_region(self, index: int):
+        region = super().evaluation_region(index)
+        if region is None and self.geometry.mask.any():
+            # No ground truth: what lies outside this run's own (dilated) 3D mask should not change.
+            src_mask = render_selection(self.source_model, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask[: self.n_source])
+            region = ~dilate(src_mask > 0.01, 2)
+        return region
+
+    # ----- checkpoint ----------------------------------------------------------------------------
+    def extra_state(self) -> dict:
+        return {
+            **super().extra_state(),
+            "phase": self.phase,
+            "v_first": self.v_first,
+            "cycle_targets": None if self.cycle_targets is None else self.cycle_targets.cpu(),
+            "cycle_views": list(self.cycle_views),
+            "targets_cycle": self.targets_cycle,
+            "edited_views": list(self.edited_views),
+            "first_edit": None if self.first_edit is None else self.first_edit.cpu(),
+            "refine_start_count": self.refine_start_count,
+            "localize_views": list(getattr(self, "localize_views", [])),
+            "localize_metrics": dict(getattr(self, "localize_metrics", {})),
+            "init_report": getattr(self, "init_report", None),
+        }
+
+    def load_extra_state(self, state: dict) -> None:
+        super().load_extra_state(state)
+        if not state:
+            return
+        self.phase = state["phase"]
+        self.v_first = state["v_first"]
+        self.cycle_targets = state["cycle_targets"]
+        self.cycle_views = state["cycle_views"]
+        self.targets_cycle = state["targets_cycle"]
+        self.edited_views = state["edited_views"]
+        self.first_edit = state["first_edit"]
+        self.refine_start_count = state["refine_start_count"]
+        self.localize_views = state["localize_views"]
+        self.localize_metrics = state["localize_metrics"]
+        self.init_report = state["init_report"]
+
+    def on_train_start(self) -> None:
+        if self.cycle_targets is not None:
+            self.cycle_targets = self.cycle_targets.to(self.device)
+        if self.first_edit is not None:
+            self.first_edit = self.first_edit.to(self.device)
+
+
+def _normalize(x: torch.Tensor) -> torch.Tensor:
+    x = x.float()
+    lo, hi = x.min(), x.max()
+    return ((x - lo) / (hi - lo).clamp_min(1e-8))[..., None].expand(*x.shape, 3)

@@ -1,0 +1,114 @@
+"""§3.2: new Gaussians for the region from calibrated monocular depth of the first edited view."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from gs_regional.data.cameras import Camera
+from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
+
+SH_C0 = 0.28209479177387814
+
+
+@dataclass
+class InitConfig:
+    alpha_min: float = 0.5  # rendered pixels below this opacity have no trustworthy 3DGS depth
+    dilate_px: int = 3  # grow the 2D region: added geometry may stick out of the masked area
+    color_change: float = 0.08  # skip pixels whose colour changed less than this (max over RGB)
+    depth_change: float = 0.03  # ...and whose depth changed less than this (relative)
+    stride: int = 1  # unproject every `stride`-th pixel in x and y
+    max_new: int = 20000  # cap on the number of added Gaussians
+    opacity: float = 0.7  # initial opacity of added Gaussians
+    scale_factor: float = 1.0  # Gaussian radius in pixel footprints
+
+
+def dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
+    if px <= 0:
+        return mask.bool()
+    m = mask.float()[None, None]
+    return (F.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[0, 0] > 0.5)
+
+
+def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """World points of pixel indices `pixels` (K, 2) as (row, col) at camera-space depth `depth` (K,)."""
+    v = pixels[:, 0].float() + 0.5
+    u = pixels[:, 1].float() + 0.5
+    x = (u - camera.cx) / camera.fx * depth
+    y = (v - camera.cy) / camera.fy * depth
+    pts_cam = torch.stack([x, y, depth], dim=-1)
+    c2w = camera.camera_to_world.to(depth.device)
+    return pts_cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def new_gaussians_from_depth(
+    camera: Camera,
+    unedited: torch.Tensor,  # (H, W, 3) render of the source scene
+    edited: torch.Tensor,  # (H, W, 3) first edited view
+    region: torch.Tensor,  # (H, W) bool 2D region of the edit
+    depth_3dgs: torch.Tensor,  # (H, W) rendered expected depth
+    alpha_3dgs: torch.Tensor,  # (H, W) rendered opacity
+    disp_unedited: torch.Tensor,  # (H, W) monocular disparity of `unedited`
+    disp_edited: torch.Tensor,  # (H, W) monocular disparity of `edited`
+    cfg: InitConfig,
+    sh_degree: int,
+) -> tuple:
+    """Returns (params dict for GaussianModel.append, report dict, d_new (H, W) for pictures)."""
+    device = edited.device
+    valid = alpha_3dgs > cfg.alpha_min
+    region = dilate(region, cfg.dilate_px)
+    calib_px = valid & ~region
+    report = {"calibration_pixels": int(calib_px.sum())}
+    if int(calib_px.sum()) < 16:
+        raise RuntimeError(
+            f"initialize: only {int(calib_px.sum())} pixels outside the region have a rendered depth; "
+            "cannot calibrate the monocular depth (is the mask covering the whole view?)"
+        )
+    # The 3DGS depth behind the region, extended to empty pixels by the farthest rendered depth,
+    # so geometry sticking out over the background still gets a reference depth.
+    far = float(depth_3dgs[valid].max())
+    d3 = torch.where(valid, depth_3dgs, torch.full_like(depth_3dgs, far))
+    disp_3dgs = 1.0 / d3
+    a_u, b_u = robust_affine(disp_unedited, disp_3dgs, calib_px)
+    a_e, b_e = robust_affine(disp_edited, disp_3dgs, calib_px)
+    d_mono_u = calibrated_depth(disp_unedited, a_u, b_u)
+    d_mono_e = calibrated_depth(disp_edited, a_e, b_e)
+    d_new = transfer_depth(d_mono_e, d_mono_u, d3)
+    report.update(scale_unedited=float(a_u), shift_unedited=float(b_u), scale_edited=float(a_e), shift_edited=float(b_e))
+
+    color_changed = (edited - unedited).abs().amax(-1) > cfg.color_change
+    depth_changed = ((d_new - d3).abs() / d3) > cfg.depth_change
+    candidates = region & (color_changed | depth_changed) & torch.isfinite(d_new) & (d_new > 0)
+    grid = torch.zeros_like(candidates)
+    grid[:: cfg.stride, :: cfg.stride] = True
+    chosen = candidates & grid
+    pixels = chosen.nonzero()
+    report.update(
+        region_pixels=int(region.sum()),
+        skipped_unchanged=int((region & ~(color_changed | depth_changed)).sum()),
+        skipped_by_stride=int((candidates & ~grid).sum()),
+    )
+    if pixels.shape[0] > cfg.max_new:
+        # Deterministic even subsample down to the cap.
+        keep = torch.linspace(0, pixels.shape[0] - 1, cfg.max_new, device=device).round().long()
+        report["skipped_by_cap"] = int(pixels.shape[0] - cfg.max_new)
+        pixels = pixels[keep]
+    else:
+        report["skipped_by_cap"] = 0
+    depth = d_new[pixels[:, 0], pixels[:, 1]]
+    colors = edited[pixels[:, 0], pixels[:, 1]]
+    k = pixels.shape[0]
+    means = unproject(camera, depth, pixels)
+    # Isotropic Gaussians the size of the (strided) pixel footprint at their depth.
+    footprint = depth / (0.5 * (camera.fx + camera.fy)) * cfg.stride * cfg.scale_factor
+    params = {
+        "means": means,
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(k, 1),
+        "log_scales": torch.log(footprint.clamp_min(1e-6))[:, None].repeat(1, 3),
+        "opacity_logits": torch.logit(torch.full((k,), cfg.opacity, device=device)),
+        "sh_dc": (colors - 0.5) / SH_C0,
+        "sh_rest": torch.zeros(k, (sh_degree + 1) ** 2 - 1, 3, device=device),
+    }
+    report["added"] = k
+    return params, report, d_new

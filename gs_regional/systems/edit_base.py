@@ -1,0 +1,242 @@
+"""What `regional-edit` and the `in2n` baseline share: the scene being edited, the 2D editor,
+finetuning steps, evaluation and the output files (DESIGN.md §1, §3.4)."""
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import torch
+
+from gs_regional.config import ConfigError
+from gs_regional.edit.localize import render_selection
+from gs_regional.edit.views import camera_path, order_by_azimuth
+from gs_regional.metrics.image import psnr, ssim
+from gs_regional.registry import find
+from gs_regional.systems.base import BaseSystem
+from gs_regional.utils.visualize import overlay_mask
+
+
+@dataclass
+class LearningRates:
+    means: float = 1.6e-4  # times the scene extent
+    quats: float = 1e-3
+    log_scales: float = 5e-3
+    opacity_logits: float = 0.05
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4
+
+
+@dataclass
+class EvalConfig:
+    max_test_views: int = 8  # views in the before/after grid and the metrics
+    turntable_frames: int = 48
+    fps: int = 24
+    clip_model: Optional[str] = None  # e.g. openai/clip-vit-large-patch14 or a local folder
+    source_caption: str = "a photo"  # for the CLIP direction similarity
+    edit_caption: str = ""  # defaults to the prompt
+
+
+class EditSystemBase(BaseSystem):
+    @dataclass
+    class Config:
+        geometry_type: str = "gaussian-model"
+        geometry: dict = field(default_factory=dict)
+        renderer_type: str = "torch-rasterizer"
+        renderer: dict = field(default_factory=dict)
+        guidance_type: str = "instructpix2pix"
+        guidance: dict = field(default_factory=dict)
+        prompt: str = ""
+        seed: int = 0
+        lr: LearningRates = field(default_factory=LearningRates)
+        lambda_l1: float = 1.0
+        lambda_lpips: float = 0.0  # needs the `lpips` extra
+        eval: EvalConfig = field(default_factory=EvalConfig)
+
+    def configure(self) -> None:
+        """Build the non-scene components (called from the constructor of subclasses)."""
+        cfg = self.cfg
+        if not cfg.prompt or not cfg.prompt.strip():
+            raise ConfigError("system.prompt is empty: say what to change, e.g. system.prompt=\"give him a mustache\"")
+        self.renderer = find(cfg.renderer_type, kind="renderers")(cfg.renderer)
+        # The 2D editor is not an nn.Module of the system: its weights never enter checkpoints.
+        self.guidance = find(cfg.guidance_type, kind="guidance")(cfg.guidance)
+        self.lpips = None
+        if cfg.lambda_lpips > 0:
+            try:
+                import lpips  # noqa: F401
+            except Exception as e:  # lpips needs torchvision, which is not always installable
+                raise ConfigError(
+                    f"system.lambda_lpips={cfg.lambda_lpips} needs the 'lpips' extra "
+                    f"(pip install 'gs_regional[lpips]'), which failed to import: {e}. "
+                    "Set system.lambda_lpips=0 to train with L1 only."
+                ) from None
+        self.timings: Dict[str, float] = {}
+        self.counts: Dict[str, int] = {}
+
+    # ----- scene ---------------------------------------------------------------------------------
+    def setup(self, stage: Optional[str] = None) -> None:
+        if getattr(self, "geometry", None) is not None:
+            return
+        dm = self.trainer.datamodule
+        dm.setup(stage)
+        self.scene = dm.scene
+        gt = self.scene.ground_truth
+        geometry_cls = find(self.cfg.geometry_type, kind="geometry")
+        if self.cfg.geometry.get("ply"):
+            self.geometry = geometry_cls(self.cfg.geometry)
+        elif gt is not None:
+            self.geometry = geometry_cls(self.cfg.geometry, n=0, sh_degree=gt["source"].sh_degree)
+            self.geometry.load_state_dict(gt["source"].state_dict(), strict=False)
+        else:
+            raise ConfigError(
+                "system.geometry.ply is not set: give the trained scene to edit "
+                "(system.geometry.ply=path/to/point_cloud.ply)"
+            )
+        if gt is not None:
+            # Simulated priors render the scene's known answer; hand it over so they cannot drift.
+            for prior in (self.guidance, getattr(self, "depth_estimator", None)):
+                if hasattr(prior, "set_ground_truth"):
+                    prior.set_ground_truth(gt)
+        self.n_source = self.geometry.num_gaussians
+        self.source_model = copy.deepcopy(self.geometry).requires_grad_(False)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            self.source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
+        self.add_time("source_renders", time.perf_counter() - t0)
+
+    def render_view(self, index: int, model=None, **kw) -> Dict[str, torch.Tensor]:
+        cam = self.scene.cameras[index].to(self.device)
+        return self.renderer.render(model if model is not None else self.geometry, cam, **kw)
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+    # ----- optimisation --------------------------------------------------------------------------
+    def configure_optimizers(self):
+        lr = self.cfg.lr
+        scale = {"means": self.scene.extent}
+        groups = [
+            {"params": [getattr(self.geometry, name)], "lr": getattr(lr, name) * scale.get(name, 1.0), "name": name}
+            for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+        ]
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+    def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        loss = self.cfg.lambda_l1 * (rgb - target).abs().mean()
+        if self.cfg.lambda_lpips > 0:
+            if self.lpips is None:
+                import lpips
+
+                self.lpips = lpips.LPIPS(net="vgg", verbose=False).to(self.device).eval().requires_grad_(False)
+            to_net = lambda x: x.permute(2, 0, 1)[None] * 2 - 1  # noqa: E731
+            loss = loss + self.cfg.lambda_lpips * self.lpips(to_net(rgb), to_net(target)).mean()
+        return loss
+
+    def optimize_on(self, index: int, target: torch.Tensor, densify_stats: bool = False) -> Dict[str, torch.Tensor]:
+        """One Adam step of the scene towards `target` at view `index`."""
+        opt = self.optimizers()
+        out = self.render_view(index)
+        loss = self.photometric_loss(out["rgb"], target.to(self.device))
+        opt.zero_grad(set_to_none=True)
+        self.manual_backward(loss)
+        if densify_stats and out["means2d"].grad is not None:
+            self.geometry.add_densification_stats(out["means2d"].grad, out["visible"])
+        opt.step()
+        self.log("train/loss", loss.detach(), prog_bar=True)
+        return out
+
+    # ----- checkpoint ----------------------------------------------------------------------------
+    def extra_state(self) -> dict:
+        return {"timings": dict(self.timings), "counts": dict(self.counts)}
+
+    def load_extra_state(self, state: dict) -> None:
+        self.timings = dict(state.get("timings", {}))
+        self.counts = dict(state.get("counts", {}))
+
+    # ----- outputs -------------------------------------------------------------------------------
+    def evaluation_region(self, index: int) -> Optional[torch.Tensor]:
+        """(H, W) bool: pixels that should NOT change at view `index`, or None if unknown.
+
+        With a ground truth: where the true edited scene renders like the source, away from the
+        true region. Otherwise subclasses may use their own 3D mask.
+        """
+        gt = self.scene.ground_truth
+        if gt is None:
+            return None
+        src = self.source_renders[index]
+        truth = self.true_edited_render(index)
+        region = render_selection(gt["source"].to(self.device), self.renderer, self.scene.cameras[index].to(self.device), gt["region"].to(self.device))
+        changed = ((truth - src).abs().amax(-1) > 2.0 / 255) | (region > 0.01)
+        from gs_regional.edit.initialize import dilate
+
+        return ~dilate(changed, 2)
+
+    def true_edited_render(self, index: int) -> torch.Tensor:
+        cache = self.__dict__.setdefault("_truth_cache", {})
+        if index not in cache:
+            with torch.no_grad():
+                cache[index] = self.render_view(index, self.scene.ground_truth["edited"].to(self.device))["rgb"]
+        return cache[index]
+
+    @torch.no_grad()
+    def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
+        """edited.ply, before/after renders, a turntable video and metrics.json."""
+        self.set_stage("output")
+        t0 = time.perf_counter()
+        self.geometry.save_ply(str(self.save_dir / "edited.ply"))
+        scene = self.scene
+        views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]
+        after = {i: self.render_view(i)["rgb"].clamp(0, 1) for i in views}
+        rows = [[self.source_renders[i], after[i]] for i in views]
+        if scene.ground_truth is not None:
+            rows = [r + [self.true_edited_render(i)] for r, i in zip(rows, views)]
+        self.save_image_grid("before_after.png", rows)
+
+        metrics: Dict[str, object] = {
+            "prompt": self.cfg.prompt,
+            "gaussians_before": self.n_source,
+            "gaussians_after": self.geometry.num_gaussians,
+            **{f"count_{k}": v for k, v in self.counts.items()},
+            **self.guidance.counters(),
+        }
+        # Fidelity of what should not have changed, against the source renders.
+        regions = {i: self.evaluation_region(i) for i in views}
+        if all(r is not None for r in regions.values()):
+            a = torch.stack([after[i] for i in views])
+            s = torch.stack([self.source_renders[i] for i in views])
+            m = torch.stack([regions[i] for i in views])
+            metrics["psnr_unedited"] = psnr(a, s, m)
+            metrics["ssim_unedited"] = ssim(a, s, m)
+        if scene.ground_truth is not None:
+            truth = torch.stack([self.true_edited_render(i) for i in views])
+            metrics["psnr_vs_true_edit"] = psnr(torch.stack([after[i] for i in views]), truth)
+            metrics["ssim_vs_true_edit"] = ssim(torch.stack([after[i] for i in views]), truth)
+        if self.cfg.eval.clip_model:
+            from gs_regional.metrics.clip import ClipMetrics
+
+            clip = ClipMetrics(self.cfg.eval.clip_model, device=self.device)
+            src = torch.stack([self.source_renders[i] for i in views])
+            edi = torch.stack([after[i] for i in views])
+            metrics["clip_direction_similarity"] = clip.direction_similarity(
+                src, edi, self.cfg.eval.source_caption, self.cfg.eval.edit_caption or self.cfg.prompt
+            )
+            metrics["clip_image_similarity"] = clip.image_similarity(src, edi)
+        metrics.update(extra_metrics or {})
+
+        path_views = order_by_azimuth(scene.cameras, scene.train_indices or scene.test_indices)
+        frames = []
+        for cam in camera_path([scene.cameras[i] for i in path_views], self.cfg.eval.turntable_frames):
+            before = self.renderer.render(self.source_model, cam.to(self.device))["rgb"]
+            now = self.renderer.render(self.geometry, cam.to(self.device))["rgb"]
+            frames.append(torch.cat([before, now], dim=1).clamp(0, 1))
+        self.save_video("turntable.mp4", frames, fps=self.cfg.eval.fps)
+        self.add_time("output", time.perf_counter() - t0)
+        metrics["seconds"] = {k: round(v, 3) for k, v in self.timings.items()}
+        metrics["seconds_total"] = round(sum(v for k, v in self.timings.items()), 3)
+        self.write_metrics_json(metrics)
+        return metrics
+
+    def overlay(self, image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(overlay_mask(image, mask))

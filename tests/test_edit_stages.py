@@ -1,0 +1,108 @@
+"""The edit stages as plain functions: view choice, camera paths, unprojection, depth init."""
+import math
+
+import torch
+
+from gs_regional.data.cameras import Camera
+from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, unproject
+from gs_regional.edit.localize import expand_selection, mask_metrics
+from gs_regional.edit.views import camera_path, nearest_cameras, order_by_azimuth, spread_subset
+
+
+def look_at(center, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0), size=32, f=40.0, name=""):
+    c = torch.tensor(center, dtype=torch.float64)
+    z = torch.tensor(target, dtype=torch.float64) - c
+    z = z / z.norm()
+    x = torch.linalg.cross(torch.tensor(up, dtype=torch.float64), z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ c
+    return Camera(w2c.float(), f, f, size / 2, size / 2, size, size, image_name=name)
+
+
+def ring(n=12, radius=3.0):
+    return [look_at((radius * math.sin(a), 0.0, -radius * math.cos(a)), name=f"{k:02d}")
+            for k, a in enumerate(torch.linspace(-1.5, 1.5, n).tolist())]
+
+
+def test_spread_subset_and_nearest():
+    assert spread_subset(list(range(10)), 5) == [0, 2, 4, 6, 8]
+    assert spread_subset([3, 4], 5) == [3, 4]
+    cams = ring()
+    near = nearest_cameras(cams, 5, 4, range(12))
+    assert 5 not in near and set(near) == {3, 4, 6, 7}
+    assert near[0] in (4, 6) and near[-1] in (3, 7)
+
+
+def test_camera_path_passes_through_keyframes_and_azimuth_order():
+    cams = ring(6)
+    path = camera_path(cams, 11)
+    assert len(path) == 11
+    assert torch.allclose(path[0].world_to_camera, cams[0].world_to_camera, atol=1e-5)
+    assert torch.allclose(path[-1].world_to_camera, cams[-1].world_to_camera, atol=1e-5)
+    assert torch.allclose(path[2].world_to_camera, cams[1].world_to_camera, atol=1e-5)
+    shuffled = [3, 0, 5, 1, 4, 2]
+    order = order_by_azimuth(cams, shuffled)
+    assert order in ([0, 1, 2, 3, 4, 5], [5, 4, 3, 2, 1, 0])
+
+
+def test_unproject_lands_on_the_pixel_ray():
+    cam = look_at((0.3, -0.2, -3.0), size=40)
+    pixels = torch.tensor([[0, 0], [10, 30], [39, 39]])
+    depth = torch.tensor([1.0, 2.5, 4.0])
+    pts = unproject(cam, depth, pixels)
+    cam_pts = pts @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    assert torch.allclose(cam_pts[:, 2], depth, atol=1e-5)
+    u = cam_pts[:, 0] / cam_pts[:, 2] * cam.fx + cam.cx
+    v = cam_pts[:, 1] / cam_pts[:, 2] * cam.fy + cam.cy
+    assert torch.allclose(u, pixels[:, 1].float() + 0.5, atol=1e-4)
+    assert torch.allclose(v, pixels[:, 0].float() + 0.5, atol=1e-4)
+
+
+def test_depth_initialization_recovers_a_known_bump():
+    """A wall at depth 4 with a block at depth 3 added in the edit; the monocular estimator sees
+    disparity under a different unknown affine map for each image. The new Gaussians must sit at
+    depth 3 where the block is, and nothing is added where nothing changed."""
+    h = w = 32
+    cam = look_at((0.0, 0.0, -4.0), size=w)
+    d3 = torch.full((h, w), 4.0)
+    alpha = torch.ones(h, w)
+    unedited = torch.full((h, w, 3), 0.5)
+    edited = unedited.clone()
+    block = torch.zeros(h, w, dtype=torch.bool)
+    block[10:20, 12:22] = True
+    edited[block] = torch.tensor([0.9, 0.1, 0.1])
+    true_edit_depth = torch.where(block, torch.tensor(3.0), d3)
+    # Unknown affine maps of the true disparity (plus a ramp elsewhere so the fit is determined).
+    ramp = torch.linspace(0, 1, w)[None].expand(h, w)
+    d3 = 4.0 + ramp
+    true_edit_depth = torch.where(block, torch.tensor(3.0), d3)
+    disp_u = 2.0 * (1 / d3) + 0.3
+    disp_e = 5.0 * (1 / true_edit_depth) - 0.1
+    region = torch.zeros(h, w, dtype=torch.bool)
+    region[8:22, 10:24] = True
+    params, report, d_new = new_gaussians_from_depth(
+        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0), sh_degree=0
+    )
+    assert report["added"] == int(block.sum())
+    assert torch.allclose(d_new[block], torch.full((int(block.sum()),), 3.0), rtol=1e-4)
+    cam_pts = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    assert torch.allclose(cam_pts[:, 2], torch.full_like(cam_pts[:, 2], 3.0), rtol=1e-4)
+    rgb = params["sh_dc"] * 0.28209479177387814 + 0.5
+    assert torch.allclose(rgb, torch.tensor([0.9, 0.1, 0.1]).expand_as(rgb), atol=1e-5)
+    capped, rep2, _ = new_gaussians_from_depth(
+        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, max_new=7), sh_degree=0
+    )
+    assert capped["means"].shape[0] == 7 and rep2["skipped_by_cap"] == int(block.sum()) - 7
+
+
+def test_expand_selection_and_mask_metrics():
+    means = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [1.0, 0, 0]])
+    sel = torch.tensor([True, False, False])
+    assert expand_selection(means, sel, 0.1).tolist() == [True, True, False]
+    assert expand_selection(means, sel, 0.0).tolist() == [True, False, False]
+    m = mask_metrics(torch.tensor([True, True, False]), torch.tensor([True, False, False]))
+    assert m["mask_iou"] == 0.5 and m["mask_precision"] == 0.5 and m["mask_recall"] == 1.0
