@@ -11,6 +11,9 @@ import os
 import sys
 
 if __name__ == "__main__":
+    # Idle OpenMP threads must sleep, not spin: on a small shared CPU spinning threads make every
+    # parallel torch op stall (10-40x slower renders). Must be set before torch is imported.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     # Run from a checkout without installing: the package lives beside this file.
     here = os.path.dirname(os.path.abspath(__file__))
     if here not in sys.path:

@@ -96,6 +96,16 @@ def test_edit_strength_grows_with_t_start(editor, cams):
     assert edit_strength(250) < edit_strength(750) < edit_strength(None) == 1.0
     for o in outs.values():
         assert o.shape == x.shape and o.min() >= 0 and o.max() <= 1
+    # away from the edit, only the re-generation of the whole image changes it, less at lower t
+    far_dist = {t: float((o - x).abs()[far].mean()) for t, o in outs.items()}
+    assert 0 < far_dist[250] < far_dist[750] < far_dist[None] < 0.05, far_dist
+    # without re-generation, the image comes back unchanged beyond the per-view shift and the bleed
+    from gs_regional.guidance.simulated_editor import SimulatedEditor
+
+    exact = SimulatedEditor({"regen_blur": 0.0, "regen_drift": 0.0})
+    exact.set_ground_truth(editor.truth.gt)
+    for t in (250, 750, None):
+        o = exact.edit(x, x, "make his head red", t_start=t, cameras=views)
         assert (o - x).abs()[far].max() < 0.02
     # a full edit lands near the true edit where it changed
     assert float((outs[None] - target).abs()[changed].mean()) < 0.12

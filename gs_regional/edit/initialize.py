@@ -22,6 +22,16 @@ class InitConfig:
     max_new: int = 20000  # cap on the number of added Gaussians
     opacity: float = 0.7  # initial opacity of added Gaussians
     scale_factor: float = 1.0  # Gaussian radius in pixel footprints
+    median: int = 3  # median filter of the monocular disparities: isolated wrong pixels make floaters
+
+
+def median_filter(x: torch.Tensor, k: int) -> torch.Tensor:
+    """k x k median of an (H, W) map (edges replicated)."""
+    if k <= 1:
+        return x
+    r = k // 2
+    p = F.pad(x[None, None], (r, r, r, r), mode="replicate")
+    return p.unfold(2, k, 1).unfold(3, k, 1).reshape(*x.shape, k * k).median(-1).values
 
 
 def dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
@@ -70,6 +80,8 @@ def new_gaussians_from_depth(
     far = float(depth_3dgs[valid].max())
     d3 = torch.where(valid, depth_3dgs, torch.full_like(depth_3dgs, far))
     disp_3dgs = 1.0 / d3
+    disp_unedited = median_filter(disp_unedited, cfg.median)
+    disp_edited = median_filter(disp_edited, cfg.median)
     a_u, b_u = robust_affine(disp_unedited, disp_3dgs, calib_px)
     a_e, b_e = robust_affine(disp_edited, disp_3dgs, calib_px)
     d_mono_u = calibrated_depth(disp_unedited, a_u, b_u)

@@ -8,28 +8,96 @@ import torch
 from gs_regional.data.cameras import Camera
 
 
-def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> torch.Tensor:
-    """Per-Gaussian score s_i = Σ_v Σ_x w_i(v,x)·M_v(x) / Σ_v Σ_x w_i(v,x), by autograd.
+def mask_votes(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> tuple:
+    """Per-view votes (V, N) of every Gaussian: numerator Σ_x w_i(v,x)·M_v(x) and denominator
+    Σ_x w_i(v,x), where w_i is the Gaussian's alpha-compositing weight.
 
     Rendering a per-Gaussian feature f gives Σ_i w_i f_i at each pixel, so the gradient of
     Σ_x M(x)·render(f)(x) with respect to f_i is Σ_x w_i(x)·M(x). Two channels give the numerator
-    (weighted by the mask) and the denominator (weighted by 1) in one backward pass.
-    Gaussians that contribute to no pixel score 0.
+    and the denominator in one backward pass.
     """
     n = model.num_gaussians
     device = model.means.device
-    num = torch.zeros(n, device=device)
-    den = torch.zeros(n, device=device)
-    for cam, m in zip(cameras, masks):
+    num = torch.zeros(len(cameras), n, device=device)
+    den = torch.zeros(len(cameras), n, device=device)
+    for v, (cam, m) in enumerate(zip(cameras, masks)):
         feat = torch.ones(n, 2, device=device, requires_grad=True)
         with torch.enable_grad():
             out = renderer.render(model, cam, override_color=feat)["rgb"]
             m = m.to(device).float()
             loss = (out[..., 0] * m).sum() + out[..., 1].sum()
             (grad,) = torch.autograd.grad(loss, feat)
-        num += grad[:, 0]
-        den += grad[:, 1]
-    return torch.where(den > 1e-8, num / den.clamp_min(1e-8), torch.zeros_like(num))
+        num[v] = grad[:, 0]
+        den[v] = grad[:, 1]
+    return num, den
+
+
+def weighted_scores(num: torch.Tensor, den: torch.Tensor, view_weights: torch.Tensor) -> torch.Tensor:
+    """s_i = Σ_v a_v·num_vi / Σ_v a_v·den_vi (0 for Gaussians no view sees)."""
+    n = (view_weights[:, None] * num).sum(0)
+    d = (view_weights[:, None] * den).sum(0)
+    return torch.where(d > 1e-8, n / d.clamp_min(1e-8), torch.zeros_like(n))
+
+
+def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> torch.Tensor:
+    """The plain rendering-weight vote of §3.1 step 4: s_i = Σ_v Σ_x w_i M_v / Σ_v Σ_x w_i."""
+    num, den = mask_votes(model, renderer, cameras, masks)
+    return weighted_scores(num, den, torch.ones(len(cameras), device=num.device))
+
+
+def mask_agreement(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], selected: torch.Tensor) -> torch.Tensor:
+    """IoU, per view, of the 2D mask with the render of the 3D selection (V,)."""
+    out = []
+    for cam, m in zip(cameras, masks):
+        r = render_selection(model, renderer, cam, selected) > 0.5
+        m = m.to(r.device) > 0.5
+        out.append(float((r & m).sum()) / max(float((r | m).sum()), 1.0))
+    return torch.tensor(out, device=selected.device)
+
+
+def knn_pool(means: torch.Tensor, num: torch.Tensor, den: torch.Tensor, k: int, chunk: int = 2048) -> tuple:
+    """Sum votes over each Gaussian's k nearest neighbours (itself included), so a Gaussian that
+    few views see well takes the verdict of its well-seen neighbours."""
+    if k <= 1:
+        return num, den
+    n = means.shape[0]
+    k = min(k, n)
+    pn, pd = torch.empty_like(num), torch.empty_like(den)
+    for s in range(0, n, chunk):
+        idx = torch.cdist(means[s : s + chunk], means).topk(k, largest=False).indices
+        pn[s : s + chunk] = num[idx].sum(1)
+        pd[s : s + chunk] = den[idx].sum(1)
+    return pn, pd
+
+
+def localize_gaussians(
+    model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
+    reweight_iters: int = 2, agreement_power: float = 2.0, knn: int = 16,
+) -> dict:
+    """§3.1 step 4 with two robustness steps of our own (both can be switched off):
+
+    * view reweighting: a 2D editor fails in some views (side views, leakage). After a first lift,
+      each view's vote is weighted by (IoU of its 2D mask with the render of the 3D mask) **
+      `agreement_power`, and
+      the lift is repeated `reweight_iters` times; views that disagree with the consensus fade.
+    * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
+      rarely seen Gaussians follow their neighbourhood.
+    Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,)}.
+    """
+    num, den = mask_votes(model, renderer, cameras, masks)
+    means = model.means.detach()
+    weights = torch.ones(len(cameras), device=num.device)
+    for it in range(reweight_iters + 1):
+        s_num = (weights[:, None] * num).sum(0)
+        s_den = (weights[:, None] * den).sum(0)
+        s_num, s_den = knn_pool(means, s_num, s_den, knn)
+        scores = torch.where(s_den > 1e-8, s_num / s_den.clamp_min(1e-8), torch.zeros_like(s_num))
+        selected = scores > threshold
+        if it < reweight_iters and bool(selected.any()):
+            weights = mask_agreement(model, renderer, cameras, masks, selected) ** agreement_power
+            if float(weights.sum()) <= 0:
+                break
+    return {"selected": selected, "scores": scores, "view_weights": weights}
 
 
 def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float, chunk: int = 4096) -> torch.Tensor:

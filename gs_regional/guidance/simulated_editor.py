@@ -117,6 +117,11 @@ class SimulatedEditor(Guidance):
         bleed: float = 2.0  # px, how far the edit's colour spreads past its area
         bleed_strength: float = 0.5  # how strongly it does
         residual_noise: float = 0.003  # std of the noise on the rest of the image
+        # A denoise from t_start re-generates the WHOLE image, not only the edit: detail is lost
+        # (blur, px) and the tone drifts per view (std of a colour gain; offset: half of it). Both
+        # are scaled by k(t_start), so they are strongest for a full edit and small at t=250.
+        regen_blur: float = 0.8
+        regen_drift: float = 0.03
         edit_threshold: float = 0.02  # a pixel is part of the edit where renders differ by more
         num_inference_steps: int = 20  # only for counting UNet evaluations
         max_cached_views: int = 512  # renders of the true scenes kept per camera
@@ -217,6 +222,17 @@ class SimulatedEditor(Guidance):
         shift, gain, offset, _ = self._jitter(camera, seed, t_start)
         return {"shift": shift.float(), "gain": gain, "offset": offset}
 
+    def _regenerate(self, img: torch.Tensor, camera: Camera, seed: int, k: float) -> torch.Tensor:
+        """The input as a partial denoise with strength k re-generates it: blurred, tone-shifted."""
+        c = self.cfg
+        if k <= 0 or (c.regen_blur <= 0 and c.regen_drift <= 0):
+            return img
+        gen = torch.Generator().manual_seed(_mix_seed(c.seed, seed, camera_seed(camera), 3))
+        gain = 1 + torch.randn(3, generator=gen) * c.regen_drift
+        offset = torch.randn(3, generator=gen) * c.regen_drift * 0.5
+        soft = torch.stack([gaussian_blur(img[..., i][None], c.regen_blur)[0] for i in range(3)], -1)
+        return img + k * ((soft * gain + offset).clamp(0, 1) - img)
+
     def edit(
         self,
         images: torch.Tensor,
@@ -257,7 +273,7 @@ class SimulatedEditor(Guidance):
                 weight = area + ring
                 colour = (area[..., None] * target + ring[..., None] * carried) / weight[..., None].clamp_min(1e-6)
             w = (k * weight)[..., None]
-            edited = img * (1 - w) + colour * w
+            edited = self._regenerate(img, cam, seed, k) * (1 - w) + colour * w
             edited = edited + c.residual_noise * torch.randn(edited.shape, generator=gen)
             out.append(edited.clamp(0, 1))
         b = images.shape[0]

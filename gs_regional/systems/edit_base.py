@@ -142,7 +142,10 @@ class EditSystemBase(BaseSystem):
         opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
         if densify_stats and out["means2d"].grad is not None:
-            self.geometry.add_densification_stats(out["means2d"].grad, out["visible"])
+            # In NDC units, as the 3DGS gradient threshold (2e-4) assumes.
+            cam = self.scene.cameras[index]
+            ndc = torch.tensor([cam.width / 2.0, cam.height / 2.0], device=self.device)
+            self.geometry.add_densification_stats(out["means2d"].grad * ndc, out["visible"])
         opt.step()
         self.log("train/loss", loss.detach(), prog_bar=True)
         return out

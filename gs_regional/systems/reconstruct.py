@@ -1,9 +1,26 @@
-"""`reconstruct`: fit a 3DGS to posed photos (for scenes that come without a trained splat)."""
+"""`reconstruct`: fit a 3DGS to posed photos (for scenes that come without a trained splat).
+
+The original 3DGS recipe, shortened for small images on a CPU:
+  * initialisation from the scene's SfM points (or random points in the camera rig's bounds);
+  * one random training view per step, loss (1 - l) L1 + l (1 - SSIM);
+  * exponentially decaying position learning rate;
+  * progressive SH: degree d's coefficients get gradients only from step d * sh_degree_every
+    (until then they stay exactly zero, so the renderer's full-degree evaluation equals the
+    lower-degree one);
+  * densification (clone / split by the view-space gradient, in NDC units like 3DGS), pruning of
+    transparent (and, optionally, huge) Gaussians, periodic opacity resets;
+  * at the end: held-out PSNR/SSIM (every `data.test_every`-th camera), save/reconstructed.ply,
+    save/test_views.png (photo | render) and save/metrics.json.
+
+Resuming from any checkpoint gives the same Gaussians as an uninterrupted run: the view order,
+backgrounds and split samples come from generators seeded by (seed, step), and the densification
+statistics and Adam moments are part of the checkpoint.
+"""
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import List, Optional
 
 import torch
 
@@ -17,11 +34,18 @@ from gs_regional.systems.edit_base import LearningRates
 
 @dataclass
 class DensifyConfig:
-    start: int = 100
-    stop: int = 1500
+    start: int = 100  # first step that densifies (statistics are gathered from step 0)
+    stop: int = 1500  # no densification, statistics or opacity reset from this step on
     every: int = 100
+    # Mean view-space gradient norm above which a Gaussian is cloned or split. In NDC units
+    # (pixel gradient x half the image size), as 3DGS's 2e-4: independent of the resolution.
     grad_threshold: float = 0.0002
-    opacity_reset_every: int = 1000
+    percent_dense: float = 0.01  # clone (small) vs split (large) at this fraction of the extent
+    min_opacity: float = 0.005  # prune below this opacity
+    opacity_reset_every: int = 1000  # 0: never
+    # After the first opacity reset, prune Gaussians wider than this on screen (pixels at the
+    # working resolution) or than 0.1 x the scene extent in the world; 0: off.
+    max_screen_size: float = 0.0
     max_gaussians: int = 200000
 
 
@@ -32,46 +56,73 @@ class Reconstruct(BaseSystem):
         renderer_type: str = "torch-rasterizer"
         renderer: dict = field(default_factory=dict)
         sh_degree: int = 3
+        sh_degree_every: int = 1000  # one more active SH degree every n steps (0: all at once)
         init: str = "points"  # "points" (SfM points of the scene) or "random"
         random_points: int = 20000
+        init_opacity: float = 0.1
         max_steps: int = 3000
         lambda_dssim: float = 0.2
         seed: int = 0
         lr: LearningRates = field(default_factory=LearningRates)
         lr_means_final_factor: float = 0.01  # exponential decay of the position learning rate
         densify: DensifyConfig = field(default_factory=DensifyConfig)
-        random_background: bool = False
+        # Colour behind the Gaussians in training and evaluation; unset: the mean colour of the
+        # training photos (the least wrong guess where nothing covers the image).
+        background: Optional[List[float]] = None
+        random_background: bool = False  # train over random colours (pushes towards opaque scenes)
+        max_test_views: int = 6  # photo | render pairs in save/test_views.png (metrics use all)
 
     def __init__(self, cfg=None, resumed: bool = False) -> None:
         super().__init__(cfg, resumed=resumed)
-        self.renderer = find(self.cfg.renderer_type, kind="renderers")(self.cfg.renderer)
+        cfg = self.cfg
+        if cfg.init not in ("points", "random"):
+            raise ConfigError(f"system.init must be 'points' or 'random', got '{cfg.init}'")
+        if not 0 <= cfg.sh_degree <= 4:
+            raise ConfigError(f"system.sh_degree must be in 0..4, got {cfg.sh_degree}")
+        if cfg.background is not None and len(cfg.background) != 3:
+            raise ConfigError(f"system.background must be 3 values (r, g, b in [0, 1]), got {list(cfg.background)}")
+        if cfg.densify.every < 1:
+            raise ConfigError(f"system.densify.every must be >= 1, got {cfg.densify.every}")
+        self.renderer = find(cfg.renderer_type, kind="renderers")(cfg.renderer)
         self.geometry: Optional[GaussianModel] = None
+        self.seconds_before = 0.0  # fit time of the runs this one resumes
 
     @property
     def total_steps(self) -> int:
         return self.cfg.max_steps
 
+    # ----- scene ---------------------------------------------------------------------------------
     def setup(self, stage: Optional[str] = None) -> None:
         if self.geometry is not None:
             return
-        dm = self.trainer.datamodule
+        self.started = time.perf_counter()
+        dm = self.datamodule
         dm.setup(stage)
         self.scene = scene = dm.scene
         if scene.images is None:
-            raise ConfigError(f"reconstruct needs photos, but the scene '{scene.source}' has no images")
-        gen = torch.Generator().manual_seed(self.cfg.seed)
-        if self.cfg.init == "points" and scene.points is not None:
+            raise ConfigError(
+                f"reconstruct needs photos, but the scene '{scene.source}' has none (its cameras name "
+                "no image files, or data.load_images is false)"
+            )
+        if not scene.train_indices:
+            raise ConfigError(f"scene '{scene.source}' has no training views (data.test_every holds out every camera)")
+        cfg = self.cfg
+        gen = torch.Generator().manual_seed(cfg.seed)
+        if cfg.init == "points" and scene.points is not None:
             xyz, rgb = (torch.as_tensor(a, dtype=torch.float32) for a in scene.points)
-        elif self.cfg.init in ("points", "random"):
-            if self.cfg.init == "points":
+        else:
+            if cfg.init == "points":
                 print(f"reconstruct: scene '{scene.source}' has no SfM points; starting from random points")
+            # A cube around the camera rig, as the 3DGS trainer does for synthetic scenes.
             centers = scene.camera_centers
             mid, radius = centers.mean(0), scene.extent
-            xyz = mid + (torch.rand(self.cfg.random_points, 3, generator=gen) * 2 - 1) * radius
-            rgb = torch.rand(self.cfg.random_points, 3, generator=gen)
+            xyz = mid + (torch.rand(cfg.random_points, 3, generator=gen) * 2 - 1) * radius
+            rgb = torch.rand(cfg.random_points, 3, generator=gen)
+        self.geometry = GaussianModel.from_points(xyz, rgb, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity)
+        if cfg.background is not None:
+            self.background = torch.tensor(list(cfg.background), dtype=torch.float32)
         else:
-            raise ConfigError(f"system.init must be 'points' or 'random', got '{self.cfg.init}'")
-        self.geometry = GaussianModel.from_points(xyz, rgb, sh_degree=self.cfg.sh_degree)
+            self.background = torch.stack([scene.images[i].reshape(-1, 3).mean(0) for i in scene.train_indices]).mean(0)
 
     def configure_optimizers(self):
         lr = self.cfg.lr
@@ -82,8 +133,13 @@ class Reconstruct(BaseSystem):
         ]
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
+    def active_sh_degree(self, step: int) -> int:
+        every = self.cfg.sh_degree_every
+        return self.cfg.sh_degree if every <= 0 else min(self.cfg.sh_degree, step // every)
+
+    # ----- training ------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx):
-        cfg, scene, g = self.cfg, self.scene, self.geometry
+        cfg, scene, g, d = self.cfg, self.scene, self.geometry, self.cfg.densify
         step = self.global_step
         self.set_stage("fit")
         opt = self.optimizers()
@@ -92,53 +148,93 @@ class Reconstruct(BaseSystem):
         for group in opt.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = cfg.lr.means * scene.extent * (cfg.lr_means_final_factor**frac)
+        # Everything random in a step is drawn from (seed, step): resuming needs no RNG state.
         gen = torch.Generator().manual_seed(cfg.seed * 104729 + step)
         idx = scene.train_indices[int(torch.randint(len(scene.train_indices), (1,), generator=gen))]
-        bg = torch.rand(3, generator=gen) if cfg.random_background else torch.zeros(3)
-        out = self.renderer.render(g, scene.cameras[idx].to(self.device), background=bg.to(self.device))
+        bg = torch.rand(3, generator=gen) if cfg.random_background else self.background
+        cam = scene.cameras[idx]
+        out = self.renderer.render(g, cam.to(self.device), background=bg.to(self.device))
         target = scene.images[idx].to(self.device)
-        loss = (1 - cfg.lambda_dssim) * (out["rgb"] - target).abs().mean() + cfg.lambda_dssim * (
-            1 - ssim_loss_value(out["rgb"], target)
-        )
+        l1 = (out["rgb"] - target).abs().mean()
+        loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_loss_value(out["rgb"], target))
         opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
-        d = cfg.densify
+        if g.sh_rest.grad is not None:
+            # Coefficients of the degrees not active yet get no gradient, so Adam leaves them at 0.
+            g.sh_rest.grad[:, (self.active_sh_degree(step) + 1) ** 2 - 1 :] = 0
         if step < d.stop and out["means2d"].grad is not None:
-            g.add_densification_stats(out["means2d"].grad, out["visible"])
+            ndc = torch.tensor([cam.width / 2.0, cam.height / 2.0], device=self.device)
+            g.add_densification_stats(out["means2d"].grad * ndc, out["visible"], out["radii"])
         opt.step()
+        self.log("train/loss", loss.detach(), prog_bar=True)
+        self.log("train/gaussians", float(g.num_gaussians), prog_bar=True)
+        # The graph still references the parameters' gradient accumulators, whose recorded shapes
+        # would be stale once densification changes the number of Gaussians.
+        del out, loss, l1
         with torch.no_grad():
-            if d.start <= step < d.stop and step % d.every == 0 and step > 0:
+            if d.start <= step < d.stop and step > 0 and step % d.every == 0:
+                prune_big = d.max_screen_size > 0 and d.opacity_reset_every > 0 and step > d.opacity_reset_every
                 g.densify_and_prune(
                     grad_threshold=d.grad_threshold,
                     scene_extent=scene.extent,
+                    percent_dense=d.percent_dense,
+                    min_opacity=d.min_opacity,
+                    max_screen_size=d.max_screen_size if prune_big else None,
                     max_gaussians=d.max_gaussians,
                     optimizer=opt.optimizer,
+                    generator=torch.Generator().manual_seed(cfg.seed * 7919 + step),
                 )
-            if d.opacity_reset_every and step > 0 and step % d.opacity_reset_every == 0 and step < d.stop:
+            if d.opacity_reset_every and 0 < step < d.stop and step % d.opacity_reset_every == 0:
                 g.reset_opacity(optimizer=opt.optimizer)
-        self.log("train/loss", loss.detach(), prog_bar=True)
-        self.log("train/gaussians", float(g.num_gaussians), prog_bar=True)
         return None
 
+    # ----- outputs -------------------------------------------------------------------------------
+    def on_train_start(self) -> None:
+        if not hasattr(self, "started"):
+            self.started = time.perf_counter()
+
+    def elapsed(self) -> float:
+        """Wall seconds of the fit so far, the runs this one resumes included."""
+        return self.seconds_before + time.perf_counter() - getattr(self, "started", time.perf_counter())
+
     @torch.no_grad()
-    def on_train_end(self) -> None:
+    def evaluate_and_save(self) -> dict:
+        """Held-out metrics, save/reconstructed.ply, save/test_views.png and save/metrics.json."""
         self.set_stage("evaluate")
         scene, g = self.scene, self.geometry
         views = scene.test_indices or scene.train_indices
-        renders = [self.renderer.render(g, scene.cameras[i].to(self.device))["rgb"].clamp(0, 1) for i in views]
+        bg = self.background.to(self.device)
+        renders = [self.renderer.render(g, scene.cameras[i].to(self.device), background=bg)["rgb"].clamp(0, 1) for i in views]
         truth = [scene.images[i].to(self.device) for i in views]
+        g.save_ply(str(self.save_dir / "reconstructed.ply"))
+        n_show = self.cfg.max_test_views
+        self.save_image_grid("test_views.png", [[t, r] for t, r in zip(truth[:n_show], renders[:n_show])])
         metrics = {
             "psnr_test": psnr(torch.stack(renders), torch.stack(truth)),
             "ssim_test": ssim(torch.stack(renders), torch.stack(truth)),
             "n_gaussians": g.num_gaussians,
             "test_views": len(views),
-            "steps": self.global_step,
-            "seconds": round(time.perf_counter() - self.fit_started, 3) if hasattr(self, "fit_started") else None,
+            "held_out": bool(scene.test_indices),  # False: measured on training views
+            "resolution": [int(scene.cameras[0].width), int(scene.cameras[0].height)],
+            "steps": int(self.global_step),
+            "seconds": round(self.elapsed(), 3),
         }
-        g.save_ply(str(self.save_dir / "reconstructed.ply"))
-        self.save_image_grid("test_views.png", [[t, r] for t, r in zip(truth[:6], renders[:6])])
         self.write_metrics_json(metrics)
-        print(f"reconstruct: held-out PSNR {metrics['psnr_test']:.2f} dB, SSIM {metrics['ssim_test']:.4f}, {g.num_gaussians} Gaussians")
+        print(
+            f"reconstruct: {'held-out' if scene.test_indices else 'training-view'} PSNR {metrics['psnr_test']:.2f} dB, "
+            f"SSIM {metrics['ssim_test']:.4f}, {g.num_gaussians} Gaussians, {metrics['seconds']:.0f} s"
+        )
+        return metrics
 
-    def on_train_start(self) -> None:
-        self.fit_started = time.perf_counter()
+    def on_train_end(self) -> None:
+        self.evaluate_and_save()
+
+    def on_export(self) -> None:
+        self.evaluate_and_save()
+
+    # ----- checkpoints ---------------------------------------------------------------------------
+    def extra_state(self) -> dict:
+        return {"seconds": self.elapsed()}
+
+    def load_extra_state(self, state: dict) -> None:
+        self.seconds_before = float(state.get("seconds", 0.0))

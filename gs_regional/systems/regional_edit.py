@@ -9,8 +9,9 @@ import torch
 
 from gs_regional.config import ConfigError
 from gs_regional.edit.initialize import InitConfig, dilate, new_gaussians_from_depth
-from gs_regional.edit.localize import expand_selection, lift_masks, mask_metrics, render_selection
+from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
+from gs_regional.guidance.base import gaussian_blur
 from gs_regional.registry import find, register
 from gs_regional.systems.edit_base import EditSystemBase
 
@@ -23,7 +24,11 @@ class LocalizeConfig:
     samples: int = 1  # noise draws averaged per view
     blur_sigma: float = 2.0  # Gaussian filter that removes isolated specks (pixels)
     mask_threshold: float = 0.5  # a Gaussian is selected if its weighted mask vote exceeds this
-    expand_radius: float = 0.0  # point expansion radius, as a fraction of the scene extent (0 = off)
+    # Robust lifting (gs_regional.edit.localize.localize_gaussians); 0 / 1 give the plain vote.
+    reweight_iters: int = 2  # re-lift with views weighted by their agreement with the 3D mask
+    agreement_power: float = 2.0  # view weight = IoU(2D mask, rendered 3D mask) ** power
+    knn: int = 16  # pool votes over the k nearest Gaussians (point expansion)
+    expand_radius: float = 0.0  # also select everything within this radius, as a fraction of the scene extent
 
 
 @dataclass
@@ -38,6 +43,10 @@ class RefineConfig:
     densify_every: int = 100
     grad_threshold: float = 0.0002
     densify_budget: int = 20000  # at most this many Gaussians added by densification in total
+    # Keep each edited view only where the editable Gaussians render (dilated, feathered) and the
+    # source render elsewhere: the 2D editor's changes outside the region never become targets.
+    composite: bool = True
+    composite_dilate: int = 6  # pixels of margin around the region for geometry the edit adds
 
 
 @register("regional-edit")
@@ -92,6 +101,7 @@ class RegionalEdit(EditSystemBase):
         g = self.geometry
         views = spread_subset(scene.train_indices, lc.max_views)
         self.localize_views = views
+        self.localize_metrics = {}
         if not cfg.localize or lc.gamma <= 0:
             selected = torch.ones(g.num_gaussians, dtype=torch.bool, device=self.device)
             masks = None
@@ -102,8 +112,12 @@ class RegionalEdit(EditSystemBase):
                 images, cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
                 samples=lc.samples, seed=cfg.seed, cameras=cams,
             )
-            scores = lift_masks(g, self.renderer, [c.to(self.device) for c in cams], masks)
-            selected = scores > lc.mask_threshold
+            lifted = localize_gaussians(
+                g, self.renderer, [c.to(self.device) for c in cams], masks, threshold=lc.mask_threshold,
+                reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
+            )
+            selected = lifted["selected"]
+            self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", self.overlay(self.source_renders[i], masks[k]))
@@ -112,9 +126,7 @@ class RegionalEdit(EditSystemBase):
         self.masks2d = masks
         self.add_time("localize", time.perf_counter() - t0)
         if self.scene.ground_truth is not None:
-            self.localize_metrics = mask_metrics(selected.cpu(), self.scene.ground_truth["region"].cpu())
-        else:
-            self.localize_metrics = {}
+            self.localize_metrics.update(mask_metrics(selected.cpu(), self.scene.ground_truth["region"].cpu()))
         for i in views:
             m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
             self.save_image(f"localize/mask3d_{i:03d}.png", self.overlay(self.source_renders[i], m3 > 0.5))
@@ -199,14 +211,14 @@ class RegionalEdit(EditSystemBase):
         targets = []
         for k, j in enumerate(views):
             if cycle == 0 and j == self.v_first:
-                targets.append(self.first_edit)
+                targets.append(self.composite(j, self.first_edit))
                 continue
             current = self.render_view(j)["rgb"].clamp(0, 1)
             edited = self.guidance.edit(
                 current[None], self.source_renders[j][None], cfg.prompt, t_start=t,
                 seed=cfg.seed + 1000 * (cycle + 1) + j, cameras=[scene.cameras[j]],
             )[0]
-            targets.append(edited.to(self.device))
+            targets.append(self.composite(j, edited.to(self.device)))
         self.cycle_targets = torch.stack(targets)
         self.cycle_views = views
         self.targets_cycle = cycle
@@ -214,6 +226,20 @@ class RegionalEdit(EditSystemBase):
         shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
         self.add_time("refine_edit", time.perf_counter() - t0)
+
+    def composite(self, index: int, edited: torch.Tensor) -> torch.Tensor:
+        """The edited view inside the localized region (rendered from the source scene, dilated and
+        feathered so that added geometry next to it is kept), the source render outside: changes
+        the 2D editor makes elsewhere (bleed, kept artefacts of the current render) never become
+        targets."""
+        r = self.cfg.refine
+        if not r.composite or r.optimize_all or not self.cfg.localize:
+            return edited
+        region = render_selection(
+            self.source_model, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask[: self.n_source]
+        )
+        soft = gaussian_blur(dilate(region > 0.05, r.composite_dilate).float()[None], r.composite_dilate / 2)[0]
+        return soft[..., None] * edited + (1 - soft[..., None]) * self.source_renders[index]
 
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":

@@ -1,0 +1,146 @@
+"""The `reconstruct` system end to end through launch.py, on small fast scenes: outputs, progressive
+SH, resuming across densification, random initialisation, and the error for a scene without photos."""
+import glob
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from plyfile import PlyData
+
+from conftest import shared_path
+from gs_regional.launcher import main
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = str(ROOT / "configs" / "reconstruct.yaml")
+
+# The face scene at 32x32 px, 16 of its 65 cameras (2 held out), densifying every 30 steps so that
+# the number of Gaussians changes before and after step 100.
+FACE_SMALL = [
+    "data.downscale=16", "data.max_cameras=16",
+    "system.max_steps=200", "system.sh_degree=3", "system.sh_degree_every=100",
+    "system.densify.start=30", "system.densify.every=30", "system.densify.stop=1000",
+    "system.densify.opacity_reset_every=0",
+    "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false",
+]
+
+
+def launch(tmp, name, *overrides, expect=0):
+    argv = ["--config", CONFIG, "--train", f"exp_root_dir={tmp}", f"name={name}", *overrides]
+    assert main(argv) == expect
+    return trial_of(tmp, name)
+
+
+def trial_of(tmp, name):
+    trials = sorted(glob.glob(os.path.join(tmp, name, "*")), key=os.path.getmtime)
+    assert trials, f"no trial dir under {tmp}/{name}"
+    return trials[-1]
+
+
+def metrics_of(trial):
+    with open(os.path.join(trial, "save", "metrics.json")) as f:
+        return json.load(f)
+
+
+def ply_arrays(path):
+    v = PlyData.read(path)["vertex"].data
+    return {name: np.asarray(v[name]) for name in v.dtype.names}
+
+
+def geometry_state(ckpt):
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    return {k: v for k, v in state.items() if k.startswith("geometry.")}
+
+
+@pytest.fixture(scope="module")
+def face_runs(tmp_path_factory):
+    """An uninterrupted 200-step fit, and one stopped at step 100 then resumed to 200."""
+    face = str(shared_path("face"))
+    tmp = tmp_path_factory.mktemp("reconstruct")
+    full = launch(tmp, "full", f"data.source={face}", *FACE_SMALL)
+    half = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, "trainer.max_steps=100")
+    at_100 = geometry_state(os.path.join(half, "ckpts", "last.ckpt"))
+    resumed = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"resume={os.path.join(half, 'ckpts', 'last.ckpt')}")
+    assert resumed == half  # resuming reuses the trial dir
+    return {"full": full, "resumed": resumed, "at_100": at_100}
+
+
+def test_fit_writes_metrics_and_ply(face_runs):
+    trial = face_runs["full"]
+    m = metrics_of(trial)
+    for key in ("psnr_test", "ssim_test", "n_gaussians", "seconds"):
+        assert key in m, f"metrics.json lacks {key}: {m}"
+    assert m["steps"] == 200 and m["held_out"] and m["test_views"] == 2  # cameras 0 and 8 of 16
+    # 200 steps already fit the held-out views far better than a flat grey image would.
+    assert m["psnr_test"] > 17.0 and 0.5 < m["ssim_test"] <= 1.0
+    assert m["seconds"] > 0
+    ply = ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))
+    assert len(ply["x"]) == m["n_gaussians"]
+    # Initialised from the 9875 SfM points, then densified.
+    assert m["n_gaussians"] != 9875
+    assert os.path.isfile(os.path.join(trial, "save", "test_views.png"))
+
+
+def test_progressive_sh_degree(face_runs):
+    """Degree 1 is trained from step 100; degrees 2 (from step 200) and 3 never were: their
+    coefficients are still exactly zero."""
+    ply = ply_arrays(os.path.join(face_runs["full"], "save", "reconstructed.ply"))
+    rest = np.stack([ply[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15)  # INRIA: channel-major
+    assert np.abs(rest[:, :, :3]).max() > 1e-4
+    assert np.all(rest[:, :, 3:] == 0)
+
+
+def test_resume_across_densification_matches_uninterrupted(face_runs):
+    full = geometry_state(os.path.join(face_runs["full"], "ckpts", "last.ckpt"))
+    resumed = geometry_state(os.path.join(face_runs["resumed"], "ckpts", "last.ckpt"))
+    n_100 = face_runs["at_100"]["geometry.means"].shape[0]
+    n_200 = full["geometry.means"].shape[0]
+    assert n_100 != 9875 and n_200 != n_100, "densification should change the count before and after step 100"
+    assert metrics_of(face_runs["resumed"])["steps"] == 200
+    for key, value in full.items():
+        other = resumed[key]
+        assert other.shape == value.shape, f"{key}: {tuple(other.shape)} != {tuple(value.shape)}"
+        if value.is_floating_point():
+            assert torch.allclose(other, value, atol=1e-5, rtol=0), f"{key} differs by {(other - value).abs().max()}"
+        else:
+            assert torch.equal(other, value), key
+    a = ply_arrays(os.path.join(face_runs["full"], "save", "reconstructed.ply"))
+    b = ply_arrays(os.path.join(face_runs["resumed"], "save", "reconstructed.ply"))
+    for name in a:
+        np.testing.assert_allclose(b[name], a[name], atol=1e-5, rtol=0, err_msg=name)
+
+
+def test_random_init_on_a_scene_without_points(tmp_path):
+    """The synthetic scene has photos but no SfM points: init=points falls back to random points."""
+    cfg = OmegaConf.load(CONFIG)
+    cfg.data_type, cfg.data = "synthetic-scene", {"n_cameras": 12, "width": 32, "height": 32}
+    config = tmp_path / "synthetic.yaml"
+    OmegaConf.save(cfg, config)
+    argv = [
+        "--config", str(config), "--train", f"exp_root_dir={tmp_path}", "name=synthetic",
+        "system.random_points=2000", "system.max_steps=60", "system.densify.start=20", "system.densify.every=20",
+        "trainer.enable_progress_bar=false", "checkpoint.every_n_train_steps=1000",
+    ]
+    assert main(argv) == 0
+    trial = trial_of(tmp_path, "synthetic")
+    m = metrics_of(trial)
+    assert m["steps"] == 60 and m["held_out"]
+    assert len(ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))["x"]) == m["n_gaussians"]
+    assert m["n_gaussians"] != 2000  # densified and pruned
+
+
+def test_scene_without_photos_is_a_clear_error(tmp_path, capsys):
+    face = str(shared_path("face"))
+    launch(tmp_path, "nophotos", f"data.source={face}", "data.load_images=false", *FACE_SMALL, expect=2)
+    err = capsys.readouterr().err
+    assert "reconstruct needs photos" in err and face in err, err
+    assert "Traceback" not in err
+
+
+def test_bad_init_is_a_config_error(tmp_path, capsys):
+    face = str(shared_path("face"))
+    launch(tmp_path, "badinit", f"data.source={face}", "system.init=sfm", expect=2)
+    assert "system.init must be 'points' or 'random'" in capsys.readouterr().err
