@@ -4,8 +4,10 @@ Returns the TRUE disparity (1 / rendered depth where the render's alpha is high;
 pixels get the far value 0) of the scene an image shows, under an unknown affine map plus
 corruption, like the relative disparity a real estimator (Depth Anything) returns:
 
-  * which scene: the image is compared (mean squared error) with the renders of the source and of
-    the true edited scene at its camera, and the nearer one is used, for the whole image;
+  * which scene, per pixel: the image is compared (squared error, smoothed over a few pixels) with
+    the renders of the source and of the true edited scene at its camera, and each pixel gets the
+    disparity of the scene it looks more like (a partly or imperfectly edited image gets the new
+    geometry where it shows it);
   * affine map: scale log-uniform in [0.5, 5] and shift in [-0.5, 0.5] x the mean disparity, drawn
     from (seed, camera), so it is unknown to the caller and differs between views but is the same
     for the edited and the unedited image of one view (a real estimator shows two near-identical
@@ -27,7 +29,7 @@ import torch
 from gs_regional.data.cameras import Camera
 from gs_regional.data.synthetic import EDIT_NAMES, TruthRenderer, camera_for_image, camera_seed, make_edit
 from gs_regional.depth.base import DepthEstimator
-from gs_regional.guidance.base import check_images
+from gs_regional.guidance.base import check_images, gaussian_blur
 from gs_regional.registry import register
 
 
@@ -91,16 +93,18 @@ class SimulatedDepth(DepthEstimator):
         for img, cam in zip(images.detach().float().cpu(), cameras):
             cam = camera_for_image(cam, h, w, "simulated-depth")
             v = self.truth.views(cam)
-            err_src = float(((img - v["src_rgb"]) ** 2).mean())
-            err_edit = float(((img - v["edit_rgb"]) ** 2).mean())
-            tag = "edit" if err_edit < err_src else "src"
+            err_src = gaussian_blur(((img - v["src_rgb"]) ** 2).mean(-1)[None], 1.5)[0]
+            err_edit = gaussian_blur(((img - v["edit_rgb"]) ** 2).mean(-1)[None], 1.5)[0]
+            use_edit = err_edit < err_src
+            tag = "edit" if bool(use_edit.any()) else "src"
             self.last_choice.append("edited" if tag == "edit" else "source")
-            disp = self.true_disparity(v[f"{tag}_depth"], v[f"{tag}_alpha"])
+            disp_src = self.true_disparity(v["src_depth"], v["src_alpha"])
+            disp = torch.where(use_edit, self.true_disparity(v["edit_depth"], v["edit_alpha"]), disp_src)
 
             # the affine map depends on (seed, camera) only; the noise also on which scene it is
             gen = torch.Generator().manual_seed((c.seed * 1_000_003 + camera_seed(cam)) % (2**61 - 1))
             scale = math.exp(float(torch.empty(1).uniform_(math.log(0.5), math.log(5.0), generator=gen)))
-            shift = float(torch.empty(1).uniform_(-0.5, 0.5, generator=gen)) * float(disp.mean())
+            shift = float(torch.empty(1).uniform_(-0.5, 0.5, generator=gen)) * float(disp_src.mean())
             rel = scale * disp + shift
             if c.corruption > 0:
                 gen = torch.Generator().manual_seed((c.seed * 1_000_003 + camera_seed(cam) * 2 + (tag == "edit")) % (2**61 - 1))

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
+from gs_regional.guidance.base import gaussian_blur
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
 
 SH_C0 = 0.28209479177387814
@@ -17,11 +19,15 @@ class InitConfig:
     alpha_min: float = 0.5  # rendered pixels below this opacity have no trustworthy 3DGS depth
     dilate_px: int = 3  # grow the 2D region: added geometry may stick out of the masked area
     color_change: float = 0.08  # skip pixels whose colour changed less than this (max over RGB)
+    change_blur: float = 1.0  # px: compare colours low-passed, as a full edit never keeps fine detail
     depth_change: float = 0.03  # ...and whose depth changed less than this (relative)
     stride: int = 1  # unproject every `stride`-th pixel in x and y
     max_new: int = 20000  # cap on the number of added Gaussians
-    opacity: float = 0.7  # initial opacity of added Gaussians
-    scale_factor: float = 1.0  # Gaussian radius in pixel footprints
+    opacity: float = 0.3  # initial opacity of added Gaussians ("modest": they must not hide the surface behind)
+    scale_factor: float = 0.5  # Gaussian standard deviation in pixel footprints
+    # New points farther than this from every selected Gaussian (as a fraction of the selection's
+    # bounding-box diagonal) are not part of the region: bleed over the background, depth outliers.
+    max_distance: float = 0.25
     median: int = 3  # median filter of the monocular disparities: isolated wrong pixels make floaters
 
 
@@ -32,6 +38,22 @@ def median_filter(x: torch.Tensor, k: int) -> torch.Tensor:
     r = k // 2
     p = F.pad(x[None, None], (r, r, r, r), mode="replicate")
     return p.unfold(2, k, 1).unfold(3, k, 1).reshape(*x.shape, k * k).median(-1).values
+
+
+def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """Per-channel gain and offset fitted (least squares on `pixels`) to map `image` onto
+    `reference`: a full 2D edit re-generates the whole view and shifts its tone, which is not a
+    change of the region."""
+    x, y = image[pixels], reference[pixels]  # (K, 3)
+    out = torch.empty_like(image)
+    for c in range(3):
+        if float(x[:, c].std()) < 1e-3:  # no contrast to fit a gain on: shift only
+            gain, offset = 1.0, float((y[:, c] - x[:, c]).mean())
+        else:
+            A = torch.stack([x[:, c], torch.ones_like(x[:, c])], -1)
+            gain, offset = torch.linalg.lstsq(A, y[:, c : c + 1]).solution[:, 0].tolist()
+        out[..., c] = image[..., c] * gain + offset
+    return out.clamp(0, 1)
 
 
 def dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
@@ -52,6 +74,19 @@ def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torc
     return pts_cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: float, chunk: int = 4096) -> torch.Tensor:
+    """(K,) bool: points within `max_distance` x (bounding-box diagonal of region_means) of a
+    region Gaussian."""
+    if region_means.shape[0] == 0 or max_distance <= 0:
+        return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+    radius = max_distance * float((region_means.max(0).values - region_means.min(0).values).norm())
+    near = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    for s in range(0, points.shape[0], chunk):
+        d = torch.cdist(points[s : s + chunk], region_means)
+        near[s : s + chunk] = d.min(1).values <= radius
+    return near
+
+
 def new_gaussians_from_depth(
     camera: Camera,
     unedited: torch.Tensor,  # (H, W, 3) render of the source scene
@@ -63,6 +98,7 @@ def new_gaussians_from_depth(
     disp_edited: torch.Tensor,  # (H, W) monocular disparity of `edited`
     cfg: InitConfig,
     sh_degree: int,
+    region_means: Optional[torch.Tensor] = None,  # (M, 3) selected Gaussians, for `max_distance`
 ) -> tuple:
     """Returns (params dict for GaussianModel.append, report dict, d_new (H, W) for pictures)."""
     device = edited.device
@@ -89,7 +125,9 @@ def new_gaussians_from_depth(
     d_new = transfer_depth(d_mono_e, d_mono_u, d3)
     report.update(scale_unedited=float(a_u), shift_unedited=float(b_u), scale_edited=float(a_e), shift_edited=float(b_e))
 
-    color_changed = (edited - unedited).abs().amax(-1) > cfg.color_change
+    edited = match_colors(edited, unedited, calib_px)
+    low = lambda im: gaussian_blur(im.permute(2, 0, 1), cfg.change_blur).permute(1, 2, 0)  # noqa: E731
+    color_changed = (low(edited) - low(unedited)).abs().amax(-1) > cfg.color_change
     depth_changed = ((d_new - d3).abs() / d3) > cfg.depth_change
     candidates = region & (color_changed | depth_changed) & torch.isfinite(d_new) & (d_new > 0)
     grid = torch.zeros_like(candidates)
@@ -109,9 +147,13 @@ def new_gaussians_from_depth(
     else:
         report["skipped_by_cap"] = 0
     depth = d_new[pixels[:, 0], pixels[:, 1]]
+    means = unproject(camera, depth, pixels)
+    if region_means is not None:
+        near = near_region(means, region_means, cfg.max_distance)
+        report["skipped_far_from_region"] = int((~near).sum())
+        pixels, depth, means = pixels[near], depth[near], means[near]
     colors = edited[pixels[:, 0], pixels[:, 1]]
     k = pixels.shape[0]
-    means = unproject(camera, depth, pixels)
     # Isotropic Gaussians the size of the (strided) pixel footprint at their depth.
     footprint = depth / (0.5 * (camera.fx + camera.fy)) * cfg.stride * cfg.scale_factor
     params = {

@@ -12,7 +12,8 @@ with the failure modes a real InstructPix2Pix shows, each with a configurable st
              fraction of the peak. Normalised per view to [0, 1] like the real maps.
   edit:      the true edited render, shifted by a per-view `position_jitter` (px) and recoloured by
              a per-view `color_jitter`, both seeded by (config seed, call seed, camera) and growing
-             with t_start (largest for a full edit from pure noise, t_start=None); a little `bleed`
+             with t_start (largest for a full edit from pure noise, t_start=None) and shrinking as
+             the input already shows the edit (partial denoising keeps existing structure); a little `bleed`
              of the edit's colour a couple of pixels past its area; then blended into the input
              as lerp(images, target, k(t_start)) with k = 1 - alphabar(t_start) of Stable
              Diffusion's schedule (k(None) = 1), so an edit from a lower t_start keeps more of the
@@ -207,9 +208,10 @@ class SimulatedEditor(Guidance):
         return torch.stack(out).to(images.device)
 
     # ------------------------------------------------------------------ edit
-    def _jitter(self, camera: Camera, seed: int, t_start: Optional[int]):
+    def _jitter(self, camera: Camera, seed: int, t_start: Optional[int], novelty: float = 1.0):
         c = self.cfg
         scale = 1.0 if t_start is None else min(max(t_start, 0), 1000) / 1000.0
+        scale *= novelty
         gen = torch.Generator().manual_seed(_mix_seed(c.seed, seed, camera_seed(camera), 2))
         shift = torch.randn(2, generator=gen, dtype=torch.float64) * c.position_jitter * scale
         gain = 1 + torch.randn(3, generator=gen) * c.color_jitter * scale
@@ -257,9 +259,17 @@ class SimulatedEditor(Guidance):
         out = []
         for img, cam in zip(images.detach().float().cpu(), cams):
             v = self.truth.views(cam)
-            shift, gain, offset, gen = self._jitter(cam, seed, t_start)
             diff = torch.maximum((v["edit_rgb"] - v["src_rgb"]).abs().amax(-1), (v["edit_alpha"] - v["src_alpha"]).abs())
             area = ((diff - c.edit_threshold) / (2 * c.edit_threshold)).clamp(0, 1)  # soft edges
+            # A partial denoise keeps the structure the input already has: the more the input
+            # already shows the edit where it belongs, the less the edit moves from view to view.
+            # (A full edit from pure noise does not look at the input.)
+            novelty = 1.0
+            if t_start is not None and float(area.sum()) > 0:
+                err_in = float(((img - v["edit_rgb"]).abs().mean(-1) * area).sum())
+                err_src = float(((v["src_rgb"] - v["edit_rgb"]).abs().mean(-1) * area).sum())
+                novelty = min(max(err_in / max(err_src, 1e-8), 0.0), 1.0)
+            shift, gain, offset, gen = self._jitter(cam, seed, t_start, novelty)
             moved = _shift(torch.cat([v["edit_rgb"], area[..., None]], -1), float(shift[0]), float(shift[1]))
             target = (moved[..., :3] * gain + offset).clamp(0, 1)
             area = moved[..., 3].clamp(0, 1)

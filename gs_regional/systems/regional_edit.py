@@ -144,7 +144,12 @@ class RegionalEdit(EditSystemBase):
         t0 = time.perf_counter()
         cfg, scene, g = self.cfg, self.scene, self.geometry
         views = self.localize_views
-        areas = torch.stack([self.rendered_mask(i).sum() for i in views])
+        # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
+        # editor is most confident about the region, usually a frontal one.
+        if self.masks2d is not None:
+            areas = self.masks2d.flatten(1).sum(1)
+        else:
+            areas = torch.stack([self.rendered_mask(i).sum() for i in views])
         self.v_first = views[int(torch.argmax(areas))]
         v = self.v_first
         cam = scene.cameras[v]
@@ -160,7 +165,8 @@ class RegionalEdit(EditSystemBase):
                 region = region | self.masks2d[views.index(v)].bool().to(self.device)
             disp = self.depth_estimator.disparity(torch.stack([unedited, edited.to(self.device)]), cameras=[cam, cam])
             params, report, d_new = new_gaussians_from_depth(
-                cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree
+                cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree,
+                region_means=g.means.detach()[g.mask],
             )
             n = params["means"].shape[0]
             if n:
@@ -179,7 +185,8 @@ class RegionalEdit(EditSystemBase):
             print(
                 f"initialize: added {n} Gaussians from the depth of view {v} "
                 f"({report['skipped_unchanged']} region pixels unchanged, {report['skipped_by_stride']} skipped by "
-                f"stride, {report['skipped_by_cap']} over the cap of {cfg.init.max_new})"
+                f"stride, {report.get('skipped_far_from_region', 0)} too far from the region, "
+                f"{report['skipped_by_cap']} over the cap of {cfg.init.max_new})"
             )
         else:
             self.counts["added_init"] = 0
