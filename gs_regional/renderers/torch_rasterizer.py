@@ -34,6 +34,7 @@ from typing import Dict, List, Optional, Tuple
 import torch
 from torch.autograd.function import once_differentiable
 
+from gs_regional.geometry.gaussian_model import quat_to_rotmat
 from gs_regional.data.cameras import Camera
 from gs_regional.registry import register
 from gs_regional.renderers.base import Renderer
@@ -44,20 +45,6 @@ ALPHA_MAX = 0.999
 T_MIN = 1e-4  # compositing stops before the transmittance would reach this
 LOG_T_MIN = math.log(T_MIN)
 RADIUS_SIGMAS = 3.33  # sqrt(2 ln 255) = 3.329: beyond this, alpha < 1/255 even at opacity 1
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """(N, 4) quaternions (w, x, y, z), not necessarily normalised -> (N, 3, 3) rotations."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
 
 
 @dataclass

@@ -100,11 +100,18 @@ class EditSystemBase(BaseSystem):
                 if hasattr(prior, "set_ground_truth"):
                     prior.set_ground_truth(gt)
         self.n_source = self.geometry.num_gaussians
-        self.source_model = copy.deepcopy(self.geometry).requires_grad_(False)
+        # The unedited scene, for source renders and comparisons. Kept out of the module tree
+        # (object.__setattr__) so it never enters checkpoints: setup() rebuilds it on resume.
+        object.__setattr__(self, "source_model", copy.deepcopy(self.geometry).requires_grad_(False))
         t0 = time.perf_counter()
         with torch.no_grad():
             self.source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
         self.add_time("source_renders", time.perf_counter() - t0)
+
+    def on_fit_start(self) -> None:
+        # setup() ran before Lightning moved the module to its device; follow it.
+        self.source_model.to(self.device)
+        self.source_renders = [r.to(self.device) for r in self.source_renders]
 
     def render_view(self, index: int, model=None, **kw) -> Dict[str, torch.Tensor]:
         cam = self.scene.cameras[index].to(self.device)
