@@ -223,6 +223,8 @@ class EditSystemBase(BaseSystem):
             truth = torch.stack([self.true_edited_render(i) for i in views])
             metrics["psnr_vs_true_edit"] = psnr(torch.stack([after[i] for i in views]), truth)
             metrics["ssim_vs_true_edit"] = ssim(torch.stack([after[i] for i in views]), truth)
+            # What leaving the scene unedited would score, for scale.
+            metrics["psnr_source_vs_true_edit"] = psnr(torch.stack([self.source_renders[i] for i in views]), truth)
         if self.cfg.eval.clip_model:
             from gs_regional.metrics.clip import ClipMetrics
 
