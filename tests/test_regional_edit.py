@@ -219,3 +219,24 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
     assert "psnr_unedited" in m and m["gaussians_before"] == gt["source"].num_gaussians
     # The input files were not touched.
     assert PlyData.read(str(scene / "point_cloud.ply"))["vertex"].count == gt["source"].num_gaussians
+
+
+def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
+    trial = launch(tmp_path, "empty", "configs/demo.yaml", *SMALL,
+                   "system.localization.gamma=0.999", "system.localization.mask_threshold=0.999")
+    assert "no Gaussian was selected" in capsys.readouterr().out
+    m = metrics_of(trial)
+    assert m["stopped"] == "empty selection" and m["count_selected"] == 0
+    edited = ply_arrays(Path(trial) / "save" / "edited.ply")
+    source = make_edit("add")["source"]
+    np.testing.assert_array_equal(edited["x"], source.means[:, 0].detach().numpy())
+    assert not (Path(trial) / "save" / "mask.ply").exists()
+
+
+def test_gamma_zero_is_a_global_edit(tmp_path, capsys):
+    trial = launch(tmp_path, "global", "configs/demo.yaml", *COMMON, "data.edit=global",
+                   "system.localization.gamma=0", "system.refine.cycles=1", "system.refine.iterations_per_cycle=5",
+                   "system.refine.m=3")
+    m = metrics_of(trial)
+    assert m["count_selected"] == m["gaussians_before"] and m["count_added_init"] == 0
+    assert "a global edit" in capsys.readouterr().out

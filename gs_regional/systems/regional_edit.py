@@ -158,7 +158,10 @@ class RegionalEdit(EditSystemBase):
         self.first_edit = edited.to(self.device)
         self.save_image("initialize/first_view_source.png", unedited)
         self.save_image("initialize/first_view_edited.png", edited)
-        if cfg.initialize:
+        if cfg.initialize and bool(g.mask.all()):
+            print("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
+            self.counts["added_init"] = 0
+        elif cfg.initialize:
             out = self.render_view(v)
             region = self.rendered_mask(v)
             if self.masks2d is not None and v in views:
