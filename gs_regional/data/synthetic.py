@@ -595,3 +595,25 @@ class TruthRenderer:
         )
         black = torch.zeros(3, device=src.means.device)
         return self.renderer.render(copy, cam, background=black)["rgb"][..., :2]
+
+
+class GroundTruthUser:
+    """For the simulated priors: the synthetic scene's known answer, handed over by a system
+    (`set_ground_truth(SceneData.ground_truth)`) or built from the component's own config
+    (edit, scene_seed, n_object, n_background, renderer, background, max_cached_views)."""
+
+    ground_truth_keys = ("source", "edited")
+    _truth: Optional["TruthRenderer"] = None
+
+    def set_ground_truth(self, gt: Dict) -> None:
+        for key in self.ground_truth_keys:
+            if key not in gt:
+                raise ValueError(f"{self.registered_name}: ground truth lacks '{key}' (expected a make_edit() dict)")
+        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
+
+    @property
+    def truth(self) -> "TruthRenderer":
+        if self._truth is None:
+            c = self.cfg
+            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
+        return self._truth

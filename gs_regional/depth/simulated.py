@@ -22,19 +22,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import List, Optional, Sequence
 
 import torch
 
 from gs_regional.data.cameras import Camera
-from gs_regional.data.synthetic import EDIT_NAMES, TruthRenderer, camera_for_image, camera_seed, make_edit
+from gs_regional.data.synthetic import EDIT_NAMES, GroundTruthUser, TruthRenderer, camera_for_image, camera_seed
 from gs_regional.depth.base import DepthEstimator
 from gs_regional.guidance.base import check_images, gaussian_blur
 from gs_regional.registry import register
 
 
 @register("simulated-depth")
-class SimulatedDepth(DepthEstimator):
+class SimulatedDepth(GroundTruthUser, DepthEstimator):
     @dataclass
     class Config:
         seed: int = 0  # draws the per-view affine map and the noise
@@ -58,19 +58,6 @@ class SimulatedDepth(DepthEstimator):
             raise ValueError(f"simulated-depth: corruption must be >= 0, got {self.cfg.corruption}")
         self._truth: Optional[TruthRenderer] = None
         self.last_choice: List[str] = []  # "source" / "edited" per image of the last call
-
-    def set_ground_truth(self, gt: Dict) -> None:
-        for key in ("source", "edited"):
-            if key not in gt:
-                raise ValueError(f"simulated-depth: ground truth lacks '{key}' (expected a make_edit() dict)")
-        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
-
-    @property
-    def truth(self) -> TruthRenderer:
-        if self._truth is None:
-            c = self.cfg
-            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
-        return self._truth
 
     def true_disparity(self, depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         """1 / depth where alpha is high, 0 (far) elsewhere."""

@@ -38,12 +38,12 @@ import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
 from gs_regional.data.synthetic import (
+    GroundTruthUser,
     EDIT_NAMES,
     TARGET,
     TruthRenderer,
     camera_for_image,
     camera_seed,
-    make_edit,
 )
 from gs_regional.guidance.base import Guidance, check_images, gaussian_blur
 from gs_regional.registry import register
@@ -94,7 +94,9 @@ def _shift(x: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
 
 
 @register("simulated-editor")
-class SimulatedEditor(Guidance):
+class SimulatedEditor(GroundTruthUser, Guidance):
+    ground_truth_keys = ("source", "edited", "region", "part_labels", "part_names")
+
     @dataclass
     class Config:
         seed: int = 0  # base seed of the per-view randomness (combined with the call's seed and the camera)
@@ -134,21 +136,6 @@ class SimulatedEditor(Guidance):
         if not 0 <= self.cfg.side_miss_start <= self.cfg.side_miss_end:
             raise ValueError("simulated-editor: need 0 <= side_miss_start <= side_miss_end (degrees)")
         self._truth: Optional[TruthRenderer] = None
-
-    # ------------------------------------------------------------------ ground truth
-    def set_ground_truth(self, gt: Dict) -> None:
-        """Use an existing ground truth (e.g. `SceneData.ground_truth`) instead of building one."""
-        for key in ("source", "edited", "region", "part_labels", "part_names"):
-            if key not in gt:
-                raise ValueError(f"simulated-editor: ground truth lacks '{key}' (expected a make_edit() dict)")
-        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
-
-    @property
-    def truth(self) -> TruthRenderer:
-        if self._truth is None:
-            c = self.cfg
-            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
-        return self._truth
 
     def _cameras(self, images: torch.Tensor, cameras, op: str) -> List[Camera]:
         if cameras is None:
