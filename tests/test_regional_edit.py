@@ -240,3 +240,16 @@ def test_gamma_zero_is_a_global_edit(tmp_path, capsys):
     m = metrics_of(trial)
     assert m["count_selected"] == m["gaussians_before"] and m["count_added_init"] == 0
     assert "a global edit" in capsys.readouterr().out
+
+
+def test_export_writes_the_checkpointed_scene(runs, capsys):
+    trial = get_run(runs, "regional")
+    ckpt = os.path.join(trial, "ckpts", "last.ckpt")
+    argv = ["--config", str(ROOT / "configs/demo.yaml"), "--export", f"exp_root_dir={runs['tmp']}", "name=regional",
+            *SMALL, f"resume={ckpt}"]
+    assert main(argv) == 0
+    exported = glob.glob(os.path.join(trial, "save", "export_step*.ply"))
+    assert len(exported) == 1
+    a, b = ply_arrays(exported[0]), ply_arrays(Path(trial) / "save" / "edited.ply")
+    for k in b:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)

@@ -190,6 +190,12 @@ class EditSystemBase(BaseSystem):
                 cache[index] = self.render_view(index, self.scene.ground_truth["edited"].to(self.device))["rgb"]
         return cache[index]
 
+    def on_export(self) -> None:
+        """`launch.py --export resume=<ckpt>`: write the scene of that checkpoint as a PLY."""
+        path = self.save_path(f"export_step{self.global_step}.ply")
+        self.geometry.save_ply(str(path))
+        print(f"export: {self.geometry.num_gaussians} Gaussians written to {path}")
+
     @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
         """edited.ply, before/after renders, a turntable video and metrics.json."""
