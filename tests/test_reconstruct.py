@@ -144,3 +144,16 @@ def test_bad_init_is_a_config_error(tmp_path, capsys):
     face = str(shared_path("face"))
     launch(tmp_path, "badinit", f"data.source={face}", "system.init=sfm", expect=2)
     assert "system.init must be 'points' or 'random'" in capsys.readouterr().err
+
+
+def test_export_rewrites_the_outputs_from_a_checkpoint(face_runs, capsys):
+    trial = face_runs["full"]
+    before = metrics_of(trial)
+    os.remove(os.path.join(trial, "save", "reconstructed.ply"))
+    argv = ["--config", CONFIG, "--export", f"data.source={shared_path('face')}", *FACE_SMALL,
+            f"resume={os.path.join(trial, 'ckpts', 'last.ckpt')}"]
+    assert main(argv) == 0
+    after = metrics_of(trial)
+    assert after["steps"] == 200 and 0 < after["seconds"] <= before["seconds"]  # the fit's time, not the export's
+    assert after["psnr_test"] == pytest.approx(before["psnr_test"], abs=1e-4)
+    assert len(ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))["x"]) == before["n_gaussians"]

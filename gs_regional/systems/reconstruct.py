@@ -18,6 +18,7 @@ statistics and Adam moments are part of the checkpoint.
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import List, Optional
@@ -30,6 +31,8 @@ from gs_regional.metrics.image import psnr, ssim, ssim_loss_value
 from gs_regional.registry import find, register
 from gs_regional.systems.base import BaseSystem
 from gs_regional.systems.edit_base import LearningRates
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -86,6 +89,7 @@ class Reconstruct(BaseSystem):
         self.renderer = find(cfg.renderer_type, kind="renderers")(cfg.renderer)
         self.geometry: Optional[GaussianModel] = None
         self.seconds_before = 0.0  # fit time of the runs this one resumes
+        self.steps_before = 0  # steps of the checkpoint loaded (--export does not restore global_step)
 
     @property
     def total_steps(self) -> int:
@@ -97,6 +101,10 @@ class Reconstruct(BaseSystem):
             return
         self.started = time.perf_counter()
         dm = self.datamodule
+        if dm is None or not hasattr(dm, "scene"):
+            raise ConfigError(
+                f"reconstruct needs a scene datamodule (data_type: scene-datamodule), got {type(dm).__name__}"
+            )
         dm.setup(stage)
         self.scene = scene = dm.scene
         if scene.images is None:
@@ -112,7 +120,7 @@ class Reconstruct(BaseSystem):
             xyz, rgb = (torch.as_tensor(a, dtype=torch.float32) for a in scene.points)
         else:
             if cfg.init == "points":
-                print(f"reconstruct: scene '{scene.source}' has no SfM points; starting from random points")
+                log.warning("scene '%s' has no SfM points: starting from %d random points", scene.source, cfg.random_points)
             # A cube around the camera rig, as the 3DGS trainer does for synthetic scenes.
             centers = scene.camera_centers
             mid, radius = centers.mean(0), scene.extent
@@ -198,8 +206,9 @@ class Reconstruct(BaseSystem):
         return self.seconds_before + time.perf_counter() - getattr(self, "started", time.perf_counter())
 
     @torch.no_grad()
-    def evaluate_and_save(self) -> dict:
-        """Held-out metrics, save/reconstructed.ply, save/test_views.png and save/metrics.json."""
+    def evaluate_and_save(self, seconds: Optional[float] = None) -> dict:
+        """Held-out metrics, save/reconstructed.ply, save/test_views.png and save/metrics.json
+        (`seconds`: the fit time to report; default: the time so far)."""
         self.set_stage("evaluate")
         scene, g = self.scene, self.geometry
         views = scene.test_indices or scene.train_indices
@@ -216,8 +225,8 @@ class Reconstruct(BaseSystem):
             "test_views": len(views),
             "held_out": bool(scene.test_indices),  # False: measured on training views
             "resolution": [int(scene.cameras[0].width), int(scene.cameras[0].height)],
-            "steps": int(self.global_step),
-            "seconds": round(self.elapsed(), 3),
+            "steps": max(int(self.global_step), self.steps_before),
+            "seconds": round(self.elapsed() if seconds is None else seconds, 3),
         }
         self.write_metrics_json(metrics)
         print(
@@ -230,11 +239,12 @@ class Reconstruct(BaseSystem):
         self.evaluate_and_save()
 
     def on_export(self) -> None:
-        self.evaluate_and_save()
+        self.evaluate_and_save(seconds=self.seconds_before)  # the fit's time, not the export's
 
     # ----- checkpoints ---------------------------------------------------------------------------
     def extra_state(self) -> dict:
-        return {"seconds": self.elapsed()}
+        return {"seconds": self.elapsed(), "steps": int(self.global_step)}
 
     def load_extra_state(self, state: dict) -> None:
         self.seconds_before = float(state.get("seconds", 0.0))
+        self.steps_before = int(state.get("steps", 0))
