@@ -1,5 +1,4 @@
 """The small public API users and scripts rely on (README "Python API")."""
-import numpy as np
 import torch
 from plyfile import PlyData
 

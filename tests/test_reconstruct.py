@@ -1,7 +1,5 @@
 """The `reconstruct` system end to end through launch.py, on small fast scenes: outputs, progressive
 SH, resuming across densification, random initialisation, and the error for a scene without photos."""
-import glob
-import json
 import os
 from pathlib import Path
 
@@ -9,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
-from plyfile import PlyData
 
 from conftest import shared_path
+from trial_helpers import metrics_of, ply_arrays, trial_of
 from gs_regional.launcher import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,20 +32,7 @@ def launch(tmp, name, *overrides, expect=0):
     return trial_of(tmp, name) if expect == 0 else None
 
 
-def trial_of(tmp, name):
-    trials = sorted(glob.glob(os.path.join(tmp, name, "*")), key=os.path.getmtime)
-    assert trials, f"no trial dir under {tmp}/{name}"
-    return trials[-1]
 
-
-def metrics_of(trial):
-    with open(os.path.join(trial, "save", "metrics.json")) as f:
-        return json.load(f)
-
-
-def ply_arrays(path):
-    v = PlyData.read(path)["vertex"].data
-    return {name: np.asarray(v[name]) for name in v.dtype.names}
 
 
 def geometry_state(ckpt):

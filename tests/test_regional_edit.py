@@ -3,7 +3,6 @@
 unedited region against the whole-scene baseline, the value of depth initialization, resume and
 reproducibility, and user guidance plugins."""
 import glob
-import json
 import os
 from pathlib import Path
 
@@ -12,6 +11,7 @@ import pytest
 import torch
 from plyfile import PlyData
 
+from trial_helpers import metrics_of, ply_arrays, trial_of
 from gs_regional.data.synthetic import make_cameras, make_edit
 from gs_regional.edit.localize import localize_gaussians, mask_metrics
 from gs_regional.edit.views import spread_subset
@@ -39,20 +39,7 @@ def launch(tmp, name, config="configs/demo.yaml", *overrides):
     return trial_of(tmp, name)
 
 
-def trial_of(tmp, name):
-    trials = sorted(glob.glob(os.path.join(tmp, name, "*")), key=os.path.getmtime)
-    assert trials, f"no trial dir under {tmp}/{name}"
-    return trials[-1]
 
-
-def metrics_of(trial):
-    with open(os.path.join(trial, "save", "metrics.json")) as f:
-        return json.load(f)
-
-
-def ply_arrays(path):
-    v = PlyData.read(path)["vertex"].data
-    return {name: np.asarray(v[name]) for name in v.dtype.names}
 
 
 @pytest.fixture(scope="module")

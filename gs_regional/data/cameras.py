@@ -1,7 +1,7 @@
 """The one camera type used everywhere (OpenCV convention: x right, y down, z forward)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from typing import Iterator, Optional
 
 import lightning as L
-import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
 from gs_regional.config import ConfigError

@@ -280,7 +280,7 @@ class RegionalEdit(EditSystemBase):
         # Stateless per-step choice of view, so a resumed run makes the same choices.
         gen = torch.Generator().manual_seed(self.cfg.seed * 104729 + step)
         k = int(torch.randint(len(self.cycle_views), (1,), generator=gen))
-        out = self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify_stats=r.densify)
+        self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify_stats=r.densify)
         if r.densify and it > 0 and it % r.densify_every == 0 and it < r.iterations_per_cycle - 1:
             with torch.no_grad():
                 rep = self.geometry.densify_and_prune(
