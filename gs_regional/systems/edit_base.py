@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Dict, Optional
 
 import torch
@@ -122,12 +122,7 @@ class EditSystemBase(BaseSystem):
 
     # ----- optimisation --------------------------------------------------------------------------
     def configure_optimizers(self):
-        lr = self.cfg.lr
-        scale = {"means": self.scene.extent}
-        groups = [
-            {"params": [getattr(self.geometry, name)], "lr": getattr(lr, name) * scale.get(name, 1.0), "name": name}
-            for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-        ]
+        groups = self.geometry.optimizer_param_groups(asdict(self.cfg.lr), spatial_scale=self.scene.extent)
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import List, Optional
 
 import torch
@@ -133,12 +133,7 @@ class Reconstruct(BaseSystem):
             self.background = torch.stack([scene.images[i].reshape(-1, 3).mean(0) for i in scene.train_indices]).mean(0)
 
     def configure_optimizers(self):
-        lr = self.cfg.lr
-        scale = {"means": self.scene.extent}
-        groups = [
-            {"params": [getattr(self.geometry, n)], "lr": getattr(lr, n) * scale.get(n, 1.0), "name": n}
-            for n in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-        ]
+        groups = self.geometry.optimizer_param_groups(asdict(self.cfg.lr), spatial_scale=self.scene.extent)
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def active_sh_degree(self, step: int) -> int:
