@@ -5,7 +5,7 @@ import torch
 
 from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
 
-from gs_regional.guidance.instructpix2pix import PretrainedLoadError
+from gs_regional.utils.pretrained import PretrainedLoadError
 from gs_regional.metrics.clip import ClipMetrics, _features
 
 pytestmark = pytest.mark.usefixtures("one_thread")

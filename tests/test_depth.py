@@ -8,7 +8,7 @@ from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
 import gs_regional
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
 from gs_regional.depth.depth_anything import DepthAnything, dpt_resize_size
-from gs_regional.guidance.instructpix2pix import PretrainedLoadError
+from gs_regional.utils.pretrained import PretrainedLoadError
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

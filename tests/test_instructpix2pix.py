@@ -11,7 +11,8 @@ from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
 
 import gs_regional
 from gs_regional.config import ConfigError
-from gs_regional.guidance.instructpix2pix import InstructPix2Pix, PretrainedLoadError, resolve_device, resolve_dtype
+from gs_regional.guidance.instructpix2pix import InstructPix2Pix
+from gs_regional.utils.pretrained import PretrainedLoadError, resolve_device, resolve_dtype
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 PROMPT = "give him a mustache"

@@ -16,7 +16,7 @@ import torch
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.base import DepthEstimator
 from gs_regional.guidance.base import check_images
-from gs_regional.guidance.instructpix2pix import (
+from gs_regional.utils.pretrained import (
     PretrainedLoadError,
     batches,
     check_local_folder,

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from gs_regional.guidance.base import check_images
-from gs_regional.guidance.instructpix2pix import (
+from gs_regional.utils.pretrained import (
     PretrainedLoadError,
     batches,
     check_local_folder,
