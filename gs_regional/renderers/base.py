@@ -28,6 +28,10 @@ class Renderer(Configurable):
     @dataclass
     class Config:
         background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+        tile_size: int = 16
+        near_plane: float = 0.01
+        far_plane: float = 1e10
+        eps2d: float = 0.3  # low-pass added to the 2D covariance diagonal, pixels^2
 
     def render(
         self,

@@ -6,7 +6,6 @@ CUDA GPU, constructing this renderer fails with a message that says so. The pure
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Dict, Optional
 
 import torch
@@ -55,13 +54,6 @@ def mirror_grad(src: torch.Tensor, index: int = 0) -> torch.Tensor:
 @register("gsplat-rasterizer")
 class GsplatRasterizer(Renderer):
     """gsplat.rasterization (gsplat 1.x), render_mode "RGB+ED", classic mode, unpacked."""
-
-    @dataclass
-    class Config(Renderer.Config):
-        tile_size: int = 16
-        near_plane: float = 0.01
-        far_plane: float = 1e10
-        eps2d: float = 0.3
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)

@@ -449,10 +449,6 @@ class TorchRasterizer(Renderer):
 
     @dataclass
     class Config(Renderer.Config):
-        tile_size: int = 16
-        near_plane: float = 0.01
-        far_plane: float = 1e10
-        eps2d: float = 0.3  # low-pass added to the 2D covariance diagonal, pixels^2
         # Pixels of a tile row evaluated together per Gaussian; must divide tile_size. Narrow
         # strips waste less work on small splats, wide ones have less per-entry overhead.
         strip_width: int = 8
