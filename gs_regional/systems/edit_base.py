@@ -10,12 +10,12 @@ from typing import Dict, Optional
 import torch
 
 from gs_regional.config import ConfigError
+from gs_regional.edit.initialize import dilate
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.registry import find
 from gs_regional.systems.base import BaseSystem
-from gs_regional.utils.visualize import overlay_mask
 
 
 @dataclass
@@ -174,8 +174,6 @@ class EditSystemBase(BaseSystem):
         truth = self.true_edited_render(index)
         region = render_selection(gt["source"].to(self.device), self.renderer, self.scene.cameras[index].to(self.device), gt["region"].to(self.device))
         changed = ((truth - src).abs().amax(-1) > 2.0 / 255) | (region > 0.01)
-        from gs_regional.edit.initialize import dilate
-
         return ~dilate(changed, 2)
 
     def true_edited_render(self, index: int) -> torch.Tensor:
@@ -250,6 +248,3 @@ class EditSystemBase(BaseSystem):
         metrics["seconds_total"] = round(sum(v for k, v in self.timings.items()), 3)
         self.write_metrics_json(metrics)
         return metrics
-
-    def overlay(self, image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(overlay_mask(image, mask))

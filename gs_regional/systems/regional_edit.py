@@ -12,6 +12,7 @@ from gs_regional.edit.initialize import InitConfig, dilate, new_gaussians_from_d
 from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
 from gs_regional.guidance.base import gaussian_blur
+from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems.edit_base import EditSystemBase
 
@@ -120,7 +121,7 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
             for k, i in enumerate(views):
-                self.save_image(f"localize/mask2d_{i:03d}.png", self.overlay(self.source_renders[i], masks[k]))
+                self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
         g.mask.copy_(selected)
         self.counts["selected"] = int(selected.sum())
         self.masks2d = masks
@@ -129,7 +130,7 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics.update(mask_metrics(selected.cpu(), self.scene.ground_truth["region"].cpu()))
         for i in views:
             m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
-            self.save_image(f"localize/mask3d_{i:03d}.png", self.overlay(self.source_renders[i], m3 > 0.5))
+            self.save_image(f"localize/mask3d_{i:03d}.png", overlay_mask(self.source_renders[i], m3 > 0.5))
         if selected.any():
             g.select(selected).save_ply(str(self.save_dir / "mask.ply"))
         self.phase = "initialize"
@@ -237,6 +238,11 @@ class RegionalEdit(EditSystemBase):
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
         self.add_time("refine_edit", time.perf_counter() - t0)
 
+    def source_region(self, index: int) -> torch.Tensor:
+        """(H, W) render of the localized Gaussians of the source scene at view `index`."""
+        cam = self.scene.cameras[index].to(self.device)
+        return render_selection(self.source_model, self.renderer, cam, self.geometry.mask[: self.n_source])
+
     def composite(self, index: int, edited: torch.Tensor) -> torch.Tensor:
         """The edited view inside the localized region (rendered from the source scene, dilated and
         feathered so that added geometry next to it is kept), the source render outside: changes
@@ -245,9 +251,7 @@ class RegionalEdit(EditSystemBase):
         r = self.cfg.refine
         if not r.composite or r.optimize_all or not self.cfg.localize:
             return edited
-        region = render_selection(
-            self.source_model, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask[: self.n_source]
-        )
+        region = self.source_region(index)
         soft = gaussian_blur(dilate(region > 0.05, r.composite_dilate).float()[None], r.composite_dilate / 2)[0]
         return soft[..., None] * edited + (1 - soft[..., None]) * self.source_renders[index]
 
@@ -309,8 +313,7 @@ class RegionalEdit(EditSystemBase):
         region = super().evaluation_region(index)
         if region is None and self.geometry.mask.any():
             # No ground truth: what lies outside this run's own (dilated) 3D mask should not change.
-            src_mask = render_selection(self.source_model, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask[: self.n_source])
-            region = ~dilate(src_mask > 0.01, 2)
+            region = ~dilate(self.source_region(index) > 0.01, 2)
         return region
 
     # ----- checkpoint ----------------------------------------------------------------------------
