@@ -73,7 +73,9 @@ def test_relevance_range_shape_and_counters(ip2p):
         rel_split = ip2p.relevance(x, PROMPT, samples=2)
     finally:
         ip2p.cfg.max_batch_size = 4
-    assert torch.allclose(rel, rel_split, atol=1e-5)
+    # 1e-3: the UNet's float reductions depend on batch size, CPU model, BLAS and thread count
+    # (1e-5 failed on one x86 machine); maps are normalised to [0, 1], so 1e-3 never flips a mask.
+    assert torch.allclose(rel, rel_split, atol=1e-3)
     assert not torch.allclose(rel[0], rel[1])
     # The prompt matters.
     assert not torch.allclose(rel, ip2p.relevance(x, "make it snow", samples=2), atol=1e-3)
@@ -114,7 +116,8 @@ def test_edit_shape_determinism_counters(ip2p):
         split = ip2p.edit(x, cond, PROMPT, seed=0)
     finally:
         ip2p.cfg.max_batch_size = 4
-    assert torch.allclose(out, split, atol=1e-4)
+    # 1e-3 on [0, 1] images: batch-size-dependent float reductions (see the relevance test).
+    assert torch.allclose(out, split, atol=1e-3)
 
 
 def test_partial_edit_starts_at_the_scheduled_step(ip2p, monkeypatch):
