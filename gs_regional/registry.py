@@ -18,10 +18,19 @@ class RegistryError(KeyError):
 
 
 def _kind(cls: type) -> str:
-    """Which kind of component a class is, from its module path (geometry, renderers, ...)."""
+    """Which kind of component a class is, from its module path (geometry, renderers, ...).
+
+    A simulator (gs_regional.sim) is of the kind of the interface it implements (its first base
+    class from another built-in package): the simulated editor is a guidance."""
     parts = cls.__module__.split(".")
     if len(parts) >= 2 and parts[0] == "gs_regional":
-        return parts[1]
+        if parts[1] != "sim":
+            return parts[1]
+        for base in cls.__mro__[1:]:
+            kind = _kind(base)
+            if kind in BUILTIN_PACKAGES and kind != "sim":
+                return kind
+        return "sim"
     return "custom"
 
 
@@ -57,7 +66,7 @@ def import_errors() -> Dict[str, str]:
     return dict(_IMPORT_ERRORS)
 
 
-BUILTIN_PACKAGES = ("geometry", "renderers", "data", "guidance", "depth", "systems")
+BUILTIN_PACKAGES = ("geometry", "renderers", "data", "guidance", "depth", "sim", "systems")
 _builtins_loaded = False
 
 

@@ -9,7 +9,7 @@ from conftest import shared_path
 def test_load_render_save_a_real_splat_with_real_cameras(tmp_path):
     """donut.ply (a trained 3DGS) rendered from cameras loaded through load_cameras."""
     from gs_regional.data.loaders import save_cameras_json
-    from gs_regional.data.synthetic import look_at
+    from gs_regional.sim.scene import look_at
 
     model = gr.GaussianModel.from_ply(str(shared_path("donut", "donut.ply")))
     center = model.means.detach().median(0).values

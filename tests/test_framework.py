@@ -56,6 +56,45 @@ def test_unknown_name_lists_registered_names_of_its_kind():
     assert "gaussian-model" not in msg  # a geometry is not listed for a guidance
 
 
+def test_simulators_are_listed_with_the_interface_they_implement():
+    """gs_regional/sim holds simulators of several kinds; an unknown-name error lists each among its peers."""
+    with pytest.raises(RegistryError) as e:
+        find("no-such-editor", kind="guidance")
+    assert "simulated-editor" in str(e.value) and "synthetic-scene" not in str(e.value)
+    with pytest.raises(RegistryError) as e:
+        find("no-such-data", kind="data")
+    assert "synthetic-scene" in str(e.value) and "simulated-depth" not in str(e.value)
+
+
+def _runtime_imports(path: Path):
+    """Modules a file imports when it runs (imports under `if TYPE_CHECKING:` are for annotations only)."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    skip = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip.update(id(n) for stmt in node.body for n in ast.walk(stmt))
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module:
+            yield node.module
+        elif isinstance(node, ast.Import):
+            yield from (a.name for a in node.names)
+
+
+def test_nothing_below_the_simulators_imports_them():
+    """Simulators sit above geometry, renderers, the priors and data; those never import gs_regional.sim."""
+    below = ["config.py", "registry.py", "utils", "geometry", "renderers", "guidance", "depth", "data"]
+    offenders = []
+    for entry in below:
+        root = REPO / "gs_regional" / entry
+        for path in [root] if root.is_file() else sorted(root.rglob("*.py")):
+            offenders += [f"{path.relative_to(REPO)}: {m}" for m in _runtime_imports(path) if m.startswith("gs_regional.sim")]
+    assert not offenders, offenders
+
+
 def test_unknown_name_mentions_modules_that_failed_to_import():
     note_import_error("plugin custom/broken.py", "ModuleNotFoundError: No module named 'nope'")
     try:

@@ -12,7 +12,7 @@ import torch
 from plyfile import PlyData
 
 from trial_helpers import metrics_of, ply_arrays, trial_of
-from gs_regional.data.synthetic import make_cameras, make_edit
+from gs_regional.sim.scene import make_cameras, make_edit
 from gs_regional.edit.localize import localize_gaussians, mask_metrics
 from gs_regional.edit.views import spread_subset
 from gs_regional.launcher import main
@@ -63,17 +63,17 @@ def test_localization_recovers_the_true_region(edit):
     cams, _ = make_cameras()
     renderer = find("torch-rasterizer")()
     editor = find("simulated-editor")()
-    editor.set_ground_truth(gt)
+    editor.attach_ground_truth(gt)
     lc = LocalizeConfig()
     views = spread_subset(list(range(len(cams))), lc.max_views)
-    images = torch.stack([renderer.render(gt["source"], cams[i])["rgb"] for i in views])
+    images = torch.stack([renderer.render(gt.source, cams[i])["rgb"] for i in views])
     vc = [cams[i] for i in views]
-    masks = editor.mask(images, gt["prompt"], threshold=lc.gamma, blur_sigma=lc.blur_sigma, cameras=vc)
-    robust = localize_gaussians(gt["source"], renderer, vc, masks, lc.mask_threshold,
+    masks = editor.mask(images, gt.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, cameras=vc)
+    robust = localize_gaussians(gt.source, renderer, vc, masks, lc.mask_threshold,
                                 lc.reweight_iters, lc.agreement_power, lc.knn)
-    plain = localize_gaussians(gt["source"], renderer, vc, masks, lc.mask_threshold, 0, 1.0, 1)
-    m = mask_metrics(robust["selected"], gt["region"])
-    m_plain = mask_metrics(plain["selected"], gt["region"])
+    plain = localize_gaussians(gt.source, renderer, vc, masks, lc.mask_threshold, 0, 1.0, 1)
+    m = mask_metrics(robust["selected"], gt.region)
+    m_plain = mask_metrics(plain["selected"], gt.region)
     print(f"{edit}: robust lift {m}, plain vote {m_plain}")
     assert m["mask_iou"] >= 0.8
     # The side views the editor misses are the ones the reweighting discounts.
@@ -138,7 +138,7 @@ def test_resume_inside_refine_gives_the_same_scene(runs, stop_at):
 
 PLUGIN = '''
 import torch
-from gs_regional.guidance.simulated_editor import SimulatedEditor
+from gs_regional.sim.editor import SimulatedEditor
 from gs_regional.registry import register
 
 
@@ -181,7 +181,7 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
     cams, _ = make_cameras(n=8, width=48, height=48)
     scene = tmp_path / "scene"
     scene.mkdir()
-    gt["source"].save_ply(str(scene / "point_cloud.ply"))
+    gt.source.save_ply(str(scene / "point_cloud.ply"))
     save_cameras_json(cams, str(scene / "cameras.json"))
     argv = [
         "--config", str(ROOT / "configs/edit.yaml"), "--train", f"exp_root_dir={tmp_path / 'out'}",
@@ -203,9 +203,9 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
     # partial edits of each cycle (4 steps at 1000/4 spacing: 3 steps <= 750, 2 steps <= 500).
     assert m["unet_evals"] == 2 * 4 + 3 * 4 + 3 * 3 * 2 + 3 * 2 * 3
     assert -1.0 <= m["clip_direction_similarity"] <= 1.0 and -1.0 <= m["clip_image_similarity"] <= 1.0
-    assert "psnr_unedited" in m and m["gaussians_before"] == gt["source"].num_gaussians
+    assert "psnr_unedited" in m and m["gaussians_before"] == gt.source.num_gaussians
     # The input files were not touched.
-    assert PlyData.read(str(scene / "point_cloud.ply"))["vertex"].count == gt["source"].num_gaussians
+    assert PlyData.read(str(scene / "point_cloud.ply"))["vertex"].count == gt.source.num_gaussians
 
 
 def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
@@ -215,7 +215,7 @@ def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
     m = metrics_of(trial)
     assert m["stopped"] == "empty selection" and m["count_selected"] == 0
     edited = ply_arrays(Path(trial) / "save" / "edited.ply")
-    source = make_edit("add")["source"]
+    source = make_edit("add").source
     np.testing.assert_array_equal(edited["x"], source.means[:, 0].detach().numpy())
     assert not (Path(trial) / "save" / "mask.ply").exists()
 
@@ -240,3 +240,36 @@ def test_export_writes_the_checkpointed_scene(runs, capsys):
     a, b = ply_arrays(exported[0]), ply_arrays(Path(trial) / "save" / "edited.ply")
     for k in b:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+@pytest.mark.parametrize("override", ["system.guidance.edit=add", "system.depth.scene_seed=0", "system.depth.n_object=6000"])
+def test_simulator_scene_fields_are_gone_from_configs(tmp_path, capsys, override):
+    """The simulators take the data module's ground truth only; the fields that once named a scene
+    of their own (and were silently replaced by it) fail at start-up as unknown keys."""
+    key = override.split("=")[0]
+    argv = ["--config", str(ROOT / "configs/demo.yaml"), "--train", f"exp_root_dir={tmp_path}", override]
+    assert main(argv) == 2
+    assert f"unknown config key '{key}'" in capsys.readouterr().err
+
+
+def test_simulator_on_a_scene_without_ground_truth_says_what_to_do(tmp_path, capsys):
+    """The simulated editor on a real scene folder (no known edit) stops at its first call with the fix."""
+    from omegaconf import OmegaConf
+
+    from gs_regional.data.loaders import save_cameras_json
+
+    gt = make_edit("add")
+    cams, _ = make_cameras(n=4, width=32, height=32)
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    gt.source.save_ply(str(scene / "point_cloud.ply"))
+    save_cameras_json(cams, str(scene / "cameras.json"))
+    cfg = OmegaConf.load(ROOT / "configs/demo.yaml")
+    cfg.data_type, cfg.data = "scene-datamodule", {"source": str(scene), "load_images": False}
+    cfg.system.geometry = {"ply": str(scene / "point_cloud.ply")}
+    config = tmp_path / "no_truth.yaml"
+    OmegaConf.save(cfg, config)
+    argv = ["--config", str(config), "--train", f"exp_root_dir={tmp_path / 'out'}", "trainer.enable_progress_bar=false"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "simulated-editor is a simulator" in err and "data_type: synthetic-scene" in err, err

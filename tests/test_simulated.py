@@ -3,8 +3,10 @@ import pytest
 import torch
 
 from gs_regional import find
-from gs_regional.data.synthetic import TruthRenderer, make_cameras, make_edit
-from gs_regional.guidance.simulated_editor import SimulatedEditor, _shift, denoising_steps, edit_strength
+from gs_regional.config import ConfigError
+from gs_regional.sim.editor import SimulatedEditor, _shift, denoising_steps, edit_strength
+from gs_regional.sim.scene import make_cameras, make_edit, make_scene
+from gs_regional.sim.truth import GroundTruth, TruthRenderer
 
 
 @pytest.fixture(scope="module")
@@ -23,13 +25,13 @@ def gt_recolor():
 
 @pytest.fixture(scope="module")
 def editor(gt_recolor):
-    ed = SimulatedEditor({"edit": "recolor"})
-    ed.set_ground_truth(gt_recolor)
+    ed = SimulatedEditor()
+    ed.attach_ground_truth(gt_recolor)
     return ed
 
 
 def _src(ed, cams):
-    return torch.stack([ed.truth.views(c)["src_rgb"] for c in cams])
+    return torch.stack([ed.truth_renderer.views(c)["src_rgb"] for c in cams])
 
 
 def _iou(a, b):
@@ -48,10 +50,49 @@ def test_registered_and_needs_cameras(editor, cams):
         editor.relevance(x, "p", cameras=[cams["front"], cams["side"]])
     with pytest.raises(ValueError, match="t_start"):
         editor.edit(x, x, "p", t_start=0, cameras=[cams["front"]])
-    with pytest.raises(ValueError, match="unknown edit"):
-        SimulatedEditor({"edit": "paint"})
     with pytest.raises(ValueError, match="cameras"):
-        find("simulated-depth")().disparity(x)
+        depth = find("simulated-depth")()
+        depth.attach_ground_truth(editor.ground_truth)
+        depth.disparity(x)
+
+
+@pytest.mark.parametrize("name", ["simulated-editor", "simulated-depth"])
+def test_simulator_without_ground_truth_says_what_to_do(name, cams):
+    """A simulator renders a known answer: without one attached it fails at its first call, naming
+    the fix, instead of inventing a scene of its own."""
+    sim = find(name)()
+    x = torch.zeros(1, 96, 96, 3)
+    call = (lambda: sim.edit(x, x, "p", cameras=[cams["front"]])) if name == "simulated-editor" else (
+        lambda: sim.disparity(x, cameras=[cams["front"]]))
+    with pytest.raises(ConfigError, match=rf"{name} is a simulator.*none was attached.*synthetic-scene.*attach_ground_truth"):
+        call()
+    with pytest.raises(TypeError, match="needs a GroundTruth"):
+        sim.attach_ground_truth({"source": None})  # the old dict form
+
+
+@pytest.mark.parametrize("name", ["simulated-editor", "simulated-depth"])
+@pytest.mark.parametrize("key", ["edit", "scene_seed", "n_object", "n_background"])
+def test_removed_scene_fields_are_unknown_keys(name, key):
+    """The scene a simulator renders comes from the data module's ground truth only: the old fields
+    that named a scene of its own are gone, and setting one fails loudly instead of being ignored."""
+    with pytest.raises(ConfigError, match=rf"unknown config key 'system\.\w+\.{key}'"):
+        find(name)({key: 1})
+
+
+def test_ground_truth_masks_must_match_their_models(gt_recolor):
+    """Per-Gaussian masks are indexed by row: one entry per source (region, related) or edited
+    (new_region) Gaussian, nothing else."""
+    fields = dict(source=gt_recolor.source, edited=gt_recolor.edited, region=gt_recolor.region,
+                  new_region=gt_recolor.new_region, front=gt_recolor.front, center=gt_recolor.center)
+    GroundTruth(**fields)
+    with pytest.raises(ValueError, match=r"region must be a bool tensor with one entry per source Gaussian"):
+        GroundTruth(**{**fields, "region": gt_recolor.region[:-1]})
+    with pytest.raises(ValueError, match=r"new_region .* per edited Gaussian"):
+        GroundTruth(**{**fields, "new_region": gt_recolor.new_region.float()})
+    with pytest.raises(ValueError, match=r"related .* per source Gaussian"):
+        GroundTruth(**fields, related=torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="front must be a 3-vector"):
+        GroundTruth(**{**fields, "front": torch.ones(2)})
 
 
 def test_relevance_front_matches_region_side_misses(editor, cams):
@@ -60,23 +101,24 @@ def test_relevance_front_matches_region_side_misses(editor, cams):
     rel = editor.relevance(x, "make his head red", cameras=views)
     assert rel.shape == (2, 96, 96) and rel.min() >= 0 and torch.allclose(rel.amax((1, 2)), torch.ones(2))
     mask = editor.mask(x, "make his head red", threshold=0.6, cameras=views)
-    truth = torch.stack([editor.truth.region_maps(c)[..., 0] > 0.5 for c in views])
+    truth = torch.stack([editor.truth_renderer.region_maps(c)[..., 0] > 0.5 for c in views])
     front_iou, side_iou = _iou(mask[0], truth[0]), _iou(mask[1], truth[1])
     assert front_iou > 0.5, front_iou
     assert side_iou < front_iou - 0.3, (front_iou, side_iou)
     # leakage: the body lights up, but below the region's peak
-    body = editor.truth.region_maps(views[0])[..., 1] > 0.9
+    body = editor.truth_renderer.region_maps(views[0])[..., 1] > 0.9
     assert 0.15 < rel[0][body].mean() < 0.6
     # deterministic given the seed; the call's seed and the config seed both matter
     assert torch.equal(rel, editor.relevance(x, "make his head red", cameras=views))
     assert not torch.equal(rel, editor.relevance(x, "make his head red", seed=1, cameras=views))
-    other = SimulatedEditor({"edit": "recolor", "seed": 5})
-    other.set_ground_truth(editor.truth.gt)
+    other = SimulatedEditor({"seed": 5})
+    other.attach_ground_truth(editor.ground_truth)
     assert not torch.equal(rel, other.relevance(x, "make his head red", cameras=views))
 
 
 def test_global_relevance_covers_everything(cams):
-    ed = SimulatedEditor({"edit": "global", "n_object": 1500, "n_background": 1000})
+    ed = SimulatedEditor()
+    ed.attach_ground_truth(make_edit("global", n_object=1500, n_background=1000))
     cam = cams["front"].scaled(0.5)
     x = _src(ed, [cam])
     assert ed.mask(x, "sepia", cameras=[cam]).mean() > 0.9
@@ -86,7 +128,7 @@ def test_global_relevance_covers_everything(cams):
 def test_edit_strength_grows_with_t_start(editor, cams):
     views = [cams["front"], cams["front2"]]
     x = _src(editor, views)
-    target = torch.stack([editor.truth.views(c)["edit_rgb"] for c in views])
+    target = torch.stack([editor.truth_renderer.views(c)["edit_rgb"] for c in views])
     changed = (target - x).abs().amax(-1) > 0.05
     # beyond the per-view shift and the bleed, the image must come back unchanged
     far = ~torch.nn.functional.max_pool2d(changed.float()[:, None], 17, 1, 8)[:, 0].bool()
@@ -100,10 +142,8 @@ def test_edit_strength_grows_with_t_start(editor, cams):
     far_dist = {t: float((o - x).abs()[far].mean()) for t, o in outs.items()}
     assert 0 < far_dist[250] < far_dist[750] < far_dist[None] < 0.05, far_dist
     # without re-generation, the image comes back unchanged beyond the per-view shift and the bleed
-    from gs_regional.guidance.simulated_editor import SimulatedEditor
-
     exact = SimulatedEditor({"regen_blur": 0.0, "regen_drift": 0.0})
-    exact.set_ground_truth(editor.truth.gt)
+    exact.attach_ground_truth(editor.ground_truth)
     for t in (250, 750, None):
         o = exact.edit(x, x, "make his head red", t_start=t, cameras=views)
         assert (o - x).abs()[far].max() < 0.02
@@ -123,14 +163,13 @@ def test_per_view_jitter(editor, cams):
     small = editor.view_jitter(a, t_start=250)
     assert small["shift"].norm() < ja["shift"].norm() and (small["gain"] - 1).abs().sum() < (ja["gain"] - 1).abs().sum()
     # the output really is the true edit moved by that shift
-    sharp = SimulatedEditor({"edit": "recolor", "color_jitter": 0.0, "bleed": 0.0, "residual_noise": 0.0,
-                             "position_jitter": 3.0})
-    sharp.set_ground_truth(editor.truth.gt)
+    sharp = SimulatedEditor({"color_jitter": 0.0, "bleed": 0.0, "residual_noise": 0.0, "position_jitter": 3.0})
+    sharp.attach_ground_truth(editor.ground_truth)
     for cam in (a, b):
         x = _src(sharp, [cam])
         out = sharp.edit(x, x, "p", cameras=[cam])[0]
         j = sharp.view_jitter(cam)["shift"]
-        v = sharp.truth.views(cam)
+        v = sharp.truth_renderer.views(cam)
         moved = _shift(v["edit_rgb"], float(j[0]), float(j[1]))
         diff = (v["edit_rgb"] - v["src_rgb"]).abs().amax(-1) > 0.1
         core = _shift(diff.float()[..., None], float(j[0]), float(j[1]))[..., 0] > 0.99
@@ -158,9 +197,9 @@ def test_region_render_fallback_matches_features(gt_recolor, cams):
     cam = cams["front"].scaled(0.5)
     truth = TruthRenderer(gt_recolor)
     maps = truth.region_maps(cam)
-    src = gt_recolor["source"]
-    feats = torch.stack([gt_recolor["region"].float(),
-                         (gt_recolor["part_labels"] == gt_recolor["part_names"].index("body")).float()], 1)
+    src = gt_recolor.source
+    _, labels, names = make_scene(0)
+    feats = torch.stack([gt_recolor.region.float(), (labels == names.index("body")).float()], 1)
     with torch.no_grad():
         colour_coded = truth._render_as_colours(src, cam, feats)
     assert maps[..., 0].max() > 0.9 and maps[..., 1].max() > 0.9
@@ -189,14 +228,14 @@ def _fit(pred, true, valid):
 
 def test_simulated_depth_recovers_true_depth(cams):
     gt = make_edit("add")
-    depth = find("simulated-depth")({"edit": "add"})
-    depth.set_ground_truth(gt)
+    depth = find("simulated-depth")()
+    depth.attach_ground_truth(gt)
     views = [cams["front"], cams["side"]]
-    src = torch.stack([depth.truth.views(c)["src_rgb"] for c in views])
+    src = torch.stack([depth.truth_renderer.views(c)["src_rgb"] for c in views])
     disp = depth.disparity(src, cameras=views)
     assert disp.shape == (2, 96, 96) and depth.last_choice == ["source", "source"]
     for i, cam in enumerate(views):
-        v = depth.truth.views(cam)
+        v = depth.truth_renderer.views(cam)
         true = depth.true_disparity(v["src_depth"], v["src_alpha"])
         valid = true > 0
         assert valid.float().mean() > 0.9
@@ -208,14 +247,14 @@ def test_simulated_depth_recovers_true_depth(cams):
         depth_err = (1 / fit[valid].clamp_min(1e-3) - v["src_depth"][valid]).abs() / v["src_depth"][valid]
         assert depth_err.median() < 0.03
     # without corruption it is exactly affine
-    exact = find("simulated-depth")({"edit": "add", "corruption": 0.0})
-    exact.set_ground_truth(gt)
+    exact = find("simulated-depth")({"corruption": 0.0})
+    exact.attach_ground_truth(gt)
     d0 = exact.disparity(src[:1], cameras=views[:1])[0]
-    v = exact.truth.views(views[0])
+    v = exact.truth_renderer.views(views[0])
     true = exact.true_disparity(v["src_depth"], v["src_alpha"])
     assert (_fit(d0, true, true > 0) - true)[true > 0].abs().max() < 1e-4
     # an image of the edited scene gets the edited scene's depth (the moustache is nearer)
-    edited = torch.stack([depth.truth.views(views[0])["edit_rgb"]])
+    edited = torch.stack([depth.truth_renderer.views(views[0])["edit_rgb"]])
     d_edit = depth.disparity(edited, cameras=views[:1])[0]
     assert depth.last_choice == ["edited"]
     moved = (v["edit_depth"] - v["src_depth"]).abs() > 0.02
@@ -223,6 +262,6 @@ def test_simulated_depth_recovers_true_depth(cams):
     assert (d_edit[moved] > disp[0][moved]).float().mean() > 0.8  # same map per view: nearer = larger
     # deterministic given the seed
     assert torch.equal(disp, depth.disparity(src, cameras=views))
-    other = find("simulated-depth")({"edit": "add", "seed": 4})
-    other.set_ground_truth(gt)
+    other = find("simulated-depth")({"seed": 4})
+    other.attach_ground_truth(gt)
     assert not torch.allclose(disp, other.disparity(src, cameras=views))

@@ -6,18 +6,19 @@ import torch
 
 from gs_regional import find
 from gs_regional.config import ConfigError
-from gs_regional.data.synthetic import (
+from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.renderers.sh import sh_to_rgb
+from gs_regional.sim.scene import (
     CAMERA_AZIMUTH_SPAN,
     CAMERA_RADIUS,
     EDIT_NAMES,
     OBJECT_PARTS,
-    SH_C0,
     SyntheticDataModule,
     make_cameras,
     make_edit,
     make_scene,
 )
-from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.sim.truth import GroundTruth
 
 PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc")
 
@@ -34,7 +35,7 @@ def _subset(model: GaussianModel, keep: torch.Tensor) -> GaussianModel:
 
 
 def _colours(model):
-    return model.sh_dc.data * SH_C0 + 0.5
+    return sh_to_rgb(model.sh_dc.data)
 
 
 @pytest.fixture(scope="module")
@@ -150,24 +151,28 @@ def test_edits_definitions(scene):
     _, labels, names = scene
     for name in EDIT_NAMES:
         gt = make_edit(name)
-        src, ed, region = gt["source"], gt["edited"], gt["region"]
-        assert gt["name"] == name and gt["prompt"] and gt["description"]
+        assert isinstance(gt, GroundTruth)
+        src, ed, region = gt.source, gt.edited, gt.region
+        assert gt.name == name and gt.prompt
         assert region.dtype == torch.bool and len(region) == len(src)
-        assert len(gt["new_region"]) == len(ed) and gt["new_region"].dtype == torch.bool
+        assert len(gt.new_region) == len(ed) and gt.new_region.dtype == torch.bool
+        assert torch.equal(gt.front, torch.tensor([0.0, 0.0, 1.0])) and torch.equal(gt.center, torch.zeros(3))
         changed = (_colours(ed)[: len(src)] - _colours(src)).abs().amax(-1) > 1e-4
         assert torch.equal(ed.means.data[: len(src)], src.means.data)
         if name == "global":
             assert region.all() and changed.float().mean() > 0.95
+            assert gt.related is None
         else:
             assert 0 < region.sum() < 0.5 * len(region)
             assert torch.equal(region, labels == names.index("head"))
+            assert torch.equal(gt.related, labels == names.index("body"))  # what an editor's relevance leaks into
         if name == "recolor":
             assert len(ed) == len(src) and torch.equal(changed, region)
             assert _colours(ed)[region].mean(0)[0] > 0.5 > _colours(ed)[region].mean(0)[1]  # red
         if name == "add":
             new = ed.generation == 1
             assert not changed.any() and new.sum() > 100 and new[len(src):].all()
-            assert torch.equal(gt["new_region"], torch.cat([region, new[len(src):]]))
+            assert torch.equal(gt.new_region, torch.cat([region, new[len(src):]]))
     with pytest.raises(ValueError, match="recolor"):
         make_edit("paint")
 
@@ -180,9 +185,9 @@ def test_add_sticks_out_of_the_silhouette(scene, cams, front_index):
     obj = torch.isin(labels, torch.tensor([names.index(p) for p in OBJECT_PARTS]))
     head = labels == names.index("head")
     with torch.no_grad():
-        src = r.render(gt["source"], cam, background=torch.zeros(3))
-        ed = r.render(gt["edited"], cam, background=torch.zeros(3))
-        maps = r.render(gt["source"], cam, override_color=torch.stack([obj, head], 1).float())["rgb"]
+        src = r.render(gt.source, cam, background=torch.zeros(3))
+        ed = r.render(gt.edited, cam, background=torch.zeros(3))
+        maps = r.render(gt.source, cam, override_color=torch.stack([obj, head], 1).float())["rgb"]
     changed = (ed["rgb"] - src["rgb"]).abs().amax(-1) > 0.05
     outside = changed & (maps[..., 0] < 0.05)
     assert changed.sum() > 30
@@ -209,11 +214,11 @@ def test_datamodule(tmp_path):
     assert s.test_indices == [0, 4, 8] and s.train_indices == [1, 2, 3, 5, 6, 7, 9]
     assert s.source == "synthetic:add"
     gt = s.ground_truth
-    assert gt["name"] == "add" and len(gt["region"]) == len(gt["source"])
-    assert torch.allclose(gt["front"], torch.tensor([0.0, 0.0, 1.0]))
+    assert isinstance(gt, GroundTruth) and gt.name == "add" and len(gt.region) == len(gt.source)
+    assert torch.allclose(gt.front, torch.tensor([0.0, 0.0, 1.0]))
     # images are the renders of the source scene at the cameras
     with torch.no_grad():
-        again = _renderer().render(gt["source"], s.cameras[3], background=torch.zeros(3))["rgb"]
+        again = _renderer().render(gt.source, s.cameras[3], background=torch.zeros(3))["rgb"]
     assert (again.clamp(0, 1) - s.images[3]).abs().max() < 1e-4
 
     it = iter(dm.train_dataloader())

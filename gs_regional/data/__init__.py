@@ -1,1 +1,1 @@
-from gs_regional.data import datamodule, synthetic  # noqa: F401  (register components)
+from gs_regional.data import datamodule  # noqa: F401  (register components)

@@ -42,7 +42,8 @@ class FixedIndices(Dataset):
 
 
 class SceneDataModuleBase(L.LightningDataModule):
-    """Shared loaders; subclasses build `self.scene` (a SceneData) in `setup()`."""
+    """Shared loaders; subclasses build `self.scene` (a SceneData, with its optional
+    `ground_truth` when they know the scene's edit) in `setup()`."""
 
     scene: Optional[SceneData] = None
 

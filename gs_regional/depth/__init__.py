@@ -1,1 +1,1 @@
-from gs_regional.depth import depth_anything, simulated  # noqa: F401
+from gs_regional.depth import depth_anything  # noqa: F401

@@ -1,1 +1,1 @@
-from gs_regional.guidance import instructpix2pix, simulated_editor  # noqa: F401
+from gs_regional.guidance import instructpix2pix  # noqa: F401

@@ -15,6 +15,7 @@ from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.registry import find
+from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems.base import BaseSystem
 
 
@@ -87,18 +88,15 @@ class EditSystemBase(BaseSystem):
         if self.cfg.geometry.get("ply"):
             self.geometry = geometry_cls(self.cfg.geometry)
         elif gt is not None:
-            self.geometry = geometry_cls(self.cfg.geometry, n=0, sh_degree=gt["source"].sh_degree)
-            self.geometry.load_state_dict(gt["source"].state_dict(), strict=False)
+            self.geometry = geometry_cls(self.cfg.geometry, n=0, sh_degree=gt.source.sh_degree)
+            self.geometry.load_state_dict(gt.source.state_dict(), strict=False)
         else:
             raise ConfigError(
                 "system.geometry.ply is not set: give the trained scene to edit "
                 "(system.geometry.ply=path/to/point_cloud.ply)"
             )
         if gt is not None:
-            # Simulated priors render the scene's known answer; hand it over so they cannot drift.
-            for prior in (self.guidance, getattr(self, "depth_estimator", None)):
-                if hasattr(prior, "set_ground_truth"):
-                    prior.set_ground_truth(gt)
+            self.attach_ground_truth(gt)
         self.n_source = self.geometry.num_gaussians
         # The unedited scene, for source renders and comparisons. Kept out of the module tree
         # (object.__setattr__) so it never enters checkpoints: setup() rebuilds it on resume.
@@ -107,6 +105,12 @@ class EditSystemBase(BaseSystem):
         with torch.no_grad():
             self.source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
         self.add_time("source_renders", time.perf_counter() - t0)
+
+    def attach_ground_truth(self, truth: GroundTruth) -> None:
+        """Hand the scene's known edit to every prior that renders one (the simulators)."""
+        for prior in (self.guidance, getattr(self, "depth_estimator", None)):
+            if hasattr(prior, "attach_ground_truth"):
+                prior.attach_ground_truth(truth)
 
     def on_fit_start(self) -> None:
         # setup() ran before Lightning moved the module to its device; follow it.
@@ -172,7 +176,7 @@ class EditSystemBase(BaseSystem):
             return None
         src = self.source_renders[index]
         truth = self.true_edited_render(index)
-        region = render_selection(gt["source"].to(self.device), self.renderer, self.scene.cameras[index].to(self.device), gt["region"].to(self.device))
+        region = render_selection(gt.source.to(self.device), self.renderer, self.scene.cameras[index].to(self.device), gt.region.to(self.device))
         changed = ((truth - src).abs().amax(-1) > 2.0 / 255) | (region > 0.01)
         return ~dilate(changed, 2)
 
@@ -180,7 +184,7 @@ class EditSystemBase(BaseSystem):
         cache = self.__dict__.setdefault("_truth_cache", {})
         if index not in cache:
             with torch.no_grad():
-                cache[index] = self.render_view(index, self.scene.ground_truth["edited"].to(self.device))["rgb"]
+                cache[index] = self.render_view(index, self.scene.ground_truth.edited.to(self.device))["rgb"]
         return cache[index]
 
     def on_export(self) -> None:

@@ -127,7 +127,7 @@ class RegionalEdit(EditSystemBase):
         self.masks2d = masks
         self.add_time("localize", time.perf_counter() - t0)
         if self.scene.ground_truth is not None:
-            self.localize_metrics.update(mask_metrics(selected.cpu(), self.scene.ground_truth["region"].cpu()))
+            self.localize_metrics.update(mask_metrics(selected.cpu(), self.scene.ground_truth.region.cpu()))
         for i in views:
             m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
             self.save_image(f"localize/mask3d_{i:03d}.png", overlay_mask(self.source_renders[i], m3 > 0.5))

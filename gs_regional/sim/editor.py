@@ -1,8 +1,9 @@
 """`simulated-editor`: a SIMULATOR of a 2D instruction editor, NOT a diffusion model.
 
-It answers `relevance` and `edit` by rendering the synthetic scene's TRUE edited scene
-(`gs_regional.data.synthetic.make_edit`) at the camera of each image, then degrading the answer
-with the failure modes a real InstructPix2Pix shows, each with a configurable strength:
+It answers `relevance` and `edit` by rendering the TRUE edited scene of the attached ground truth
+(`attach_ground_truth`; systems hand over the data module's, e.g. the synthetic scene's
+`make_edit`) at the camera of each image, then degrading the answer with the failure modes a real
+InstructPix2Pix shows, each with a configurable strength:
 
   relevance: the true region's rendered weight, grown by `spread` px and blurred (`blur`), with
              spatially correlated noise (`noise`), fading in views far from the front
@@ -22,7 +23,7 @@ with the failure modes a real InstructPix2Pix shows, each with a configurable st
 
 It exists so that the 3D part of the method (lifting masks, depth-initialised geometry, sequential
 refinement) can be measured against a known answer on CPU. The prompt is not read: the edit is the
-configured one (`edit`); `cond_images` are validated but the camera defines the view. Images must
+ground truth's; `cond_images` are validated but the camera defines the view. Images must
 come with their `cameras=`. Counters report what a real IP2P run would spend: 3*B UNet evaluations
 per denoising step for the steps at or below t_start out of `num_inference_steps` (DDIM, leading
 spacing, offset 1, as diffusers sets it up for Stable Diffusion), 2*B per relevance sample.
@@ -37,16 +38,9 @@ import torch
 import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
-from gs_regional.data.synthetic import (
-    GroundTruthUser,
-    EDIT_NAMES,
-    TARGET,
-    TruthRenderer,
-    camera_for_image,
-    camera_seed,
-)
 from gs_regional.guidance.base import Guidance, check_images, gaussian_blur
 from gs_regional.registry import register
+from gs_regional.sim.truth import GroundTruthConsumer, camera_for_image, camera_seed
 
 
 def _alphas_cumprod() -> torch.Tensor:
@@ -94,17 +88,11 @@ def _shift(x: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
 
 
 @register("simulated-editor")
-class SimulatedEditor(GroundTruthUser, Guidance):
-    ground_truth_keys = ("source", "edited", "region", "part_labels", "part_names")
-
+class SimulatedEditor(GroundTruthConsumer, Guidance):
     @dataclass
     class Config:
         seed: int = 0  # base seed of the per-view randomness (combined with the call's seed and the camera)
-        edit: str = "recolor"  # the ground-truth edit it simulates: recolor | add | global
-        scene_seed: int = 0  # the synthetic scene (must match the data module's seed)
-        n_object: int = 6000  # must match the data module
-        n_background: int = 4000  # must match the data module
-        renderer: str = "torch-rasterizer"
+        renderer: str = "torch-rasterizer"  # renders the ground truth
         background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # as the data module
         # --- relevance failure modes ---
         spread: int = 1  # px, the map covers a little more than the region (real maps are blobby)
@@ -131,11 +119,8 @@ class SimulatedEditor(GroundTruthUser, Guidance):
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where or "system.guidance")
-        if self.cfg.edit not in EDIT_NAMES:
-            raise ValueError(f"simulated-editor: unknown edit '{self.cfg.edit}'; known: {', '.join(EDIT_NAMES)}")
         if not 0 <= self.cfg.side_miss_start <= self.cfg.side_miss_end:
             raise ValueError("simulated-editor: need 0 <= side_miss_start <= side_miss_end (degrees)")
-        self._truth: Optional[TruthRenderer] = None
 
     def _cameras(self, images: torch.Tensor, cameras, op: str) -> List[Camera]:
         if cameras is None:
@@ -150,9 +135,9 @@ class SimulatedEditor(GroundTruthUser, Guidance):
         return [camera_for_image(c, h, w, f"simulated-editor.{op}") for c in cameras]
 
     def _angle_from_front(self, camera: Camera) -> float:
-        front = self.truth.gt.get("front")
-        front = torch.tensor([0.0, 0.0, 1.0]) if front is None else torch.as_tensor(front).float().cpu()
-        d = camera.center.cpu() - torch.tensor(TARGET)
+        truth = self.ground_truth
+        front = truth.front.cpu()
+        d = camera.center.cpu() - truth.center.cpu()
         cos = float(d @ front / (d.norm() * front.norm()).clamp_min(1e-9))
         return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
@@ -172,7 +157,7 @@ class SimulatedEditor(GroundTruthUser, Guidance):
         samples = max(1, int(samples))
         out = []
         for cam in cams:
-            maps = self.truth.region_maps(cam)
+            maps = self.truth_renderer.region_maps(cam)
             region, related = maps[..., 0], maps[..., 1]
             if c.spread > 0:
                 k = 2 * int(c.spread) + 1
@@ -245,7 +230,7 @@ class SimulatedEditor(GroundTruthUser, Guidance):
         k = edit_strength(t_start)
         out = []
         for img, cam in zip(images.detach().float().cpu(), cams):
-            v = self.truth.views(cam)
+            v = self.truth_renderer.views(cam)
             diff = torch.maximum((v["edit_rgb"] - v["src_rgb"]).abs().amax(-1), (v["edit_alpha"] - v["src_alpha"]).abs())
             area = ((diff - c.edit_threshold) / (2 * c.edit_threshold)).clamp(0, 1)  # soft edges
             # A partial denoise keeps the structure the input already has: the more the input

@@ -23,14 +23,15 @@ Named ground-truth edits (`make_edit`):
            head's Gaussians (the part it is attached to, which is what an editor's mask selects);
            edited = source + the new Gaussians.
   global   a sepia colour transform of every Gaussian (background included); region = all.
+Each is returned as a `GroundTruth` (gs_regional.sim.truth); its `related` part (what a real
+editor's relevance tends to light up too) is the body for `recolor` and `add`, none for `global`.
 
 `SyntheticDataModule` (registered as `synthetic-scene`) serves renders of the source scene at
-a front-biased ring of cameras, with the ground truth attached to `SceneData.ground_truth`.
+a front-biased ring of cameras, with the ground truth in `SceneData.ground_truth`.
 """
 from __future__ import annotations
 
 import math
-import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Dict, List, Optional, Tuple
@@ -42,9 +43,10 @@ from gs_regional.data.cameras import Camera
 from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.registry import register
+from gs_regional.registry import find, register
+from gs_regional.renderers.sh import rgb_to_sh
+from gs_regional.sim.truth import GroundTruth
 
-SH_C0 = 0.28209479177387814
 FRONT = (0.0, 0.0, 1.0)  # the direction the figure faces
 TARGET = (0.0, 0.0, 0.0)  # where the cameras look
 GROUND_Y = -0.6
@@ -327,7 +329,7 @@ def _to_model(a: _Arrays, generation: Optional[torch.Tensor] = None, mask: Optio
     op = a.opacity.clamp(1e-4, 1 - 1e-4)
     return GaussianModel.from_tensors(
         means=a.means.float(), quats=a.quats.float(), log_scales=a.log_scales.float(),
-        opacity_logits=torch.log(op / (1 - op)).float(), sh_dc=((a.rgb - 0.5) / SH_C0).float(),
+        opacity_logits=torch.log(op / (1 - op)).float(), sh_dc=rgb_to_sh(a.rgb).float(),
         mask=mask, generation=generation,
     )
 
@@ -386,33 +388,20 @@ def _sepia(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb @ torch.tensor(_SEPIA, dtype=rgb.dtype).T).clamp(0, 1)
 
 
-_DESCRIPTIONS = {
-    "recolor": (
-        "make his head red",
-        "the head's colour changes to red (shading kept); region = the head's Gaussians",
-    ),
-    "add": (
-        "give him a mustache",
-        "new Gaussians (generation 1) form a handlebar moustache under the nose whose tips stick out "
-        "beside the head; region = the head's Gaussians (the part it is attached to)",
-    ),
-    "global": (
-        "make it look like an old sepia photograph",
-        "every Gaussian's colour goes through a sepia matrix; region = all Gaussians",
-    ),
+_PROMPTS = {
+    "recolor": "make his head red",
+    "add": "give him a mustache",
+    "global": "make it look like an old sepia photograph",
 }
 # A part next to the region that a real editor's relevance tends to light up too (the simulated
 # editor's `leakage`); None for global edits.
 _RELATED = {"recolor": "body", "add": "body", "global": None}
 
 
-def make_edit(name: str, seed: int = 0, n_object: int = 6000, n_background: int = 4000) -> Dict:
-    """A named ground-truth edit of `make_scene(seed, ...)`.
+def make_edit(name: str, seed: int = 0, n_object: int = 6000, n_background: int = 4000) -> GroundTruth:
+    """A named ground-truth edit of `make_scene(seed, ...)` (see the module docstring).
 
-    Returns dict(source, edited (GaussianModels), region (bool over source Gaussians: what an editor
-    should select), new_region (bool over edited Gaussians: region plus any new Gaussians), name,
-    edit (= name), description, prompt, part_labels, part_names, related (a part that should NOT
-    change but looks related), front (3,))."""
+    The edited scene keeps the source's rows first (same order), new Gaussians follow."""
     if name not in EDIT_NAMES:
         raise ValueError(f"unknown synthetic edit '{name}'; known edits: {', '.join(EDIT_NAMES)}")
     source, labels, names = make_scene(seed, n_object, n_background)
@@ -437,20 +426,21 @@ def make_edit(name: str, seed: int = 0, n_object: int = 6000, n_background: int 
         region = torch.ones(len(labels), dtype=torch.bool)
         new_region = region.clone()
         edited = _to_model(_Arrays(a.means, a.quats, a.log_scales, a.opacity, _sepia(a.rgb), a.labels), mask=new_region)
-    prompt, description = _DESCRIPTIONS[name]
-    return dict(
-        source=source, edited=edited, region=region, new_region=new_region, name=name, edit=name,
-        description=description, prompt=prompt, part_labels=labels, part_names=names,
-        related=_RELATED[name], front=torch.tensor(FRONT, dtype=torch.float32),
+    related = None if _RELATED[name] is None else labels == names.index(_RELATED[name])
+    return GroundTruth(
+        source=source, edited=edited, region=region, new_region=new_region, related=related,
+        front=torch.tensor(FRONT), center=torch.tensor(TARGET), name=name, prompt=_PROMPTS[name],
     )
 
 
 def render_views(model: GaussianModel, cameras: List[Camera], background=(0.0, 0.0, 0.0)) -> List[Dict[str, torch.Tensor]]:
     """rgb/depth/alpha renders of `model` at each camera (no gradients), with the project renderer."""
-    from gs_regional.api import render
-
+    renderer = find("torch-rasterizer", kind="renderers")()
+    device = model.means.device
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     with torch.no_grad():
-        return [{k: render(model, cam, background)[k].detach() for k in ("rgb", "depth", "alpha")} for cam in cameras]
+        return [{k: v.detach() for k, v in renderer.render(model, cam.to(device), background=bg).items()
+                 if k in ("rgb", "depth", "alpha")} for cam in cameras]
 
 
 @lru_cache(maxsize=4)
@@ -491,129 +481,10 @@ class SyntheticDataModule(SceneDataModuleBase):
         if self.scene is not None:
             return
         c = self.cfg
-        cameras, front = make_cameras(c.n_cameras, c.width, c.height, c.seed)
+        cameras, _ = make_cameras(c.n_cameras, c.width, c.height, c.seed)
         images = _cached_source_images(c.seed, c.n_object, c.n_background, c.n_cameras, c.width, c.height,
                                        tuple(float(v) for v in c.background))
         train, test = split_every(len(cameras), c.test_every)
-        gt = make_edit(c.edit, seed=c.seed, n_object=c.n_object, n_background=c.n_background)
-        gt["front"] = front
+        truth = make_edit(c.edit, seed=c.seed, n_object=c.n_object, n_background=c.n_background)
         self.scene = SceneData(cameras=cameras, images=[im.clone() for im in images], train_indices=train,
-                               test_indices=test, ground_truth=gt, source=f"synthetic:{c.edit}")
-
-
-def camera_key(camera: Camera) -> Tuple:
-    """A hashable identity of a camera (pose rounded to 1e-5, intrinsics, size)."""
-    pose = tuple(round(float(v), 5) for v in camera.world_to_camera.detach().cpu().flatten())
-    intr = tuple(round(float(v), 4) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
-    return pose + intr + (int(camera.width), int(camera.height))
-
-
-def camera_seed(camera: Camera) -> int:
-    """A stable 31-bit integer per camera (the same across processes), for per-view randomness."""
-    return zlib.crc32(repr(camera_key(camera)).encode()) & 0x7FFFFFFF
-
-
-def camera_for_image(camera: Camera, height: int, width: int, who: str) -> Camera:
-    """`camera` resized to an image of height x width (same aspect), or a clear error."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"{who}: cameras must be gs_regional Camera objects, got {type(camera).__name__}")
-    if (camera.width, camera.height) == (width, height):
-        return camera
-    scaled = camera.scaled(width / camera.width)
-    if (scaled.width, scaled.height) != (width, height):
-        raise ValueError(
-            f"{who}: image is {width}x{height} but camera '{camera.image_name}' is "
-            f"{camera.width}x{camera.height} (a different aspect ratio)"
-        )
-    return scaled
-
-
-class TruthRenderer:
-    """Renders of a ground-truth edit (from `make_edit`) at any camera, cached per camera.
-
-    Shared by the simulated editor and the simulated depth estimator."""
-
-    def __init__(self, gt: Dict, renderer: str = "torch-rasterizer", background=(0.0, 0.0, 0.0),
-                 max_cached: int = 512) -> None:
-        from gs_regional.registry import find
-
-        self.gt = gt
-        self.renderer_name = renderer
-        self.renderer = find(renderer, kind="renderers")()
-        self.background = torch.as_tensor(list(background), dtype=torch.float32)
-        self.max_cached = int(max_cached)
-        self._cache: Dict[Tuple, Dict[str, torch.Tensor]] = {}
-
-    def _remember(self, key, value):
-        if len(self._cache) >= self.max_cached:
-            self._cache.pop(next(iter(self._cache)))  # drop the oldest
-        self._cache[key] = value
-        return value
-
-    def views(self, camera: Camera) -> Dict[str, torch.Tensor]:
-        """{src_rgb, src_depth, src_alpha, edit_rgb, edit_depth, edit_alpha} on the CPU."""
-        key = ("views",) + camera_key(camera)
-        if key in self._cache:
-            return self._cache[key]
-        out = {}
-        with torch.no_grad():
-            for tag, model in (("src", self.gt["source"]), ("edit", self.gt["edited"])):
-                cam = camera.to(model.means.device)
-                r = self.renderer.render(model, cam, background=self.background.to(model.means.device))
-                out[f"{tag}_rgb"] = r["rgb"].detach().float().clamp(0, 1).cpu()
-                out[f"{tag}_depth"] = r["depth"].detach().float().cpu()
-                out[f"{tag}_alpha"] = r["alpha"].detach().float().cpu()
-        return self._remember(key, out)
-
-    def region_maps(self, camera: Camera) -> torch.Tensor:
-        """(H, W, 2): the rendered weight of the true region and of the related part of the
-        source scene (accumulated alpha-compositing weights, in [0, 1])."""
-        key = ("region",) + camera_key(camera)
-        if key in self._cache:
-            return self._cache[key]
-        src = self.gt["source"]
-        feats = torch.zeros(len(src), 2)
-        feats[:, 0] = self.gt["region"].float()
-        related = self.gt.get("related")
-        if related:
-            feats[:, 1] = (self.gt["part_labels"] == self.gt["part_names"].index(related)).float()
-        feats = feats.to(src.means.device)
-        cam = camera.to(src.means.device)
-        with torch.no_grad():
-            try:
-                maps = self.renderer.render(src, cam, override_color=feats)["rgb"][..., :2]
-            except (TypeError, NotImplementedError):
-                # a renderer without per-Gaussian features: encode them as colours of a copy
-                maps = self._render_as_colours(src, cam, feats)
-        return self._remember(key, maps.detach().float().clamp(0, 1).cpu())
-
-    def _render_as_colours(self, src: GaussianModel, cam: Camera, feats: torch.Tensor) -> torch.Tensor:
-        rgb = torch.cat([feats, torch.zeros(len(src), 1, device=feats.device)], 1)
-        copy = GaussianModel.from_tensors(
-            means=src.means.detach(), quats=src.quats.detach(), log_scales=src.log_scales.detach(),
-            opacity_logits=src.opacity_logits.detach(), sh_dc=(rgb - 0.5) / SH_C0,
-        )
-        black = torch.zeros(3, device=src.means.device)
-        return self.renderer.render(copy, cam, background=black)["rgb"][..., :2]
-
-
-class GroundTruthUser:
-    """For the simulated priors: the synthetic scene's known answer, handed over by a system
-    (`set_ground_truth(SceneData.ground_truth)`) or built from the component's own config
-    (edit, scene_seed, n_object, n_background, renderer, background, max_cached_views)."""
-
-    ground_truth_keys = ("source", "edited")
-    _truth: Optional["TruthRenderer"] = None
-
-    def set_ground_truth(self, gt: Dict) -> None:
-        for key in self.ground_truth_keys:
-            if key not in gt:
-                raise ValueError(f"{self.registered_name}: ground truth lacks '{key}' (expected a make_edit() dict)")
-        self._truth = TruthRenderer(gt, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
-
-    @property
-    def truth(self) -> "TruthRenderer":
-        if self._truth is None:
-            c = self.cfg
-            self.set_ground_truth(make_edit(c.edit, seed=c.scene_seed, n_object=c.n_object, n_background=c.n_background))
-        return self._truth
+                               test_indices=test, ground_truth=truth, source=f"synthetic:{c.edit}")

@@ -1,4 +1,4 @@
-"""`simulated-depth`: a SIMULATED monocular depth estimator for the synthetic scene.
+"""`simulated-depth`: a SIMULATED monocular depth estimator for scenes with a known edit.
 
 Returns the TRUE disparity (1 / rendered depth where the render's alpha is high; background
 pixels get the far value 0) of the scene an image shows, under an unknown affine map plus
@@ -15,8 +15,8 @@ corruption, like the relative disparity a real estimator (Depth Anything) return
   * corruption (0 = exact): Gaussian noise of `noise * corruption` x the image's disparity range
     and a fraction `outliers * corruption` of pixels replaced by random values in that range.
 
-Images must come with their `cameras=`. The scene is `make_edit(edit, scene_seed, ...)` unless a
-ground truth is handed over with `set_ground_truth` (e.g. `SceneData.ground_truth`).
+Images must come with their `cameras=`. The scenes are those of the ground truth handed over with
+`attach_ground_truth` (systems hand over `SceneData.ground_truth`, e.g. the synthetic scene's).
 """
 from __future__ import annotations
 
@@ -27,23 +27,19 @@ from typing import List, Optional, Sequence
 import torch
 
 from gs_regional.data.cameras import Camera
-from gs_regional.data.synthetic import EDIT_NAMES, GroundTruthUser, TruthRenderer, camera_for_image, camera_seed
 from gs_regional.depth.base import DepthEstimator
 from gs_regional.guidance.base import check_images, gaussian_blur
 from gs_regional.registry import register
+from gs_regional.sim.truth import GroundTruthConsumer, camera_for_image, camera_seed
 
 
 @register("simulated-depth")
-class SimulatedDepth(GroundTruthUser, DepthEstimator):
+class SimulatedDepth(GroundTruthConsumer, DepthEstimator):
     @dataclass
     class Config:
         seed: int = 0  # draws the per-view affine map and the noise
-        edit: str = "recolor"  # the ground-truth edit whose edited scene images may show
-        scene_seed: int = 0  # must match the data module's seed
-        n_object: int = 6000  # must match the data module
-        n_background: int = 4000  # must match the data module
-        renderer: str = "torch-rasterizer"
-        background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+        renderer: str = "torch-rasterizer"  # renders the ground truth
+        background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # as the data module
         corruption: float = 1.0  # overall strength of the corruption below (0: exact up to the affine map)
         noise: float = 0.01  # noise std as a fraction of the image's disparity range, at corruption 1
         outliers: float = 0.005  # fraction of pixels replaced by random values, at corruption 1
@@ -52,11 +48,8 @@ class SimulatedDepth(GroundTruthUser, DepthEstimator):
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where or "system.depth")
-        if self.cfg.edit not in EDIT_NAMES:
-            raise ValueError(f"simulated-depth: unknown edit '{self.cfg.edit}'; known: {', '.join(EDIT_NAMES)}")
         if self.cfg.corruption < 0:
             raise ValueError(f"simulated-depth: corruption must be >= 0, got {self.cfg.corruption}")
-        self._truth: Optional[TruthRenderer] = None
         self.last_choice: List[str] = []  # "source" / "edited" per image of the last call
 
     def true_disparity(self, depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -69,7 +62,7 @@ class SimulatedDepth(GroundTruthUser, DepthEstimator):
         if cameras is None:
             raise ValueError(
                 "simulated-depth.disparity needs cameras=[one Camera per image]: it renders the true "
-                "depth of the synthetic scene (it is a simulator, not a depth network)"
+                "depth of the ground truth's scenes (it is a simulator, not a depth network)"
             )
         cameras = list(cameras)
         if len(cameras) != images.shape[0]:
@@ -79,7 +72,7 @@ class SimulatedDepth(GroundTruthUser, DepthEstimator):
         out, self.last_choice = [], []
         for img, cam in zip(images.detach().float().cpu(), cameras):
             cam = camera_for_image(cam, h, w, "simulated-depth")
-            v = self.truth.views(cam)
+            v = self.truth_renderer.views(cam)
             err_src = gaussian_blur(((img - v["src_rgb"]) ** 2).mean(-1)[None], 1.5)[0]
             err_edit = gaussian_blur(((img - v["edit_rgb"]) ** 2).mean(-1)[None], 1.5)[0]
             use_edit = err_edit < err_src
