@@ -7,20 +7,25 @@ Use it from YAML like any built-in guidance:
       guidance:
         strength: 1.0
 
-`relevance()` is the colour saturation (chroma, max - min over RGB) of each pixel: exactly where
+A guidance plugin implements only `_relevance` and `_edit`. The public `relevance`, `mask` and
+`edit` it inherits from `Guidance` check the arguments first (image shapes and range, the prompt,
+`timestep` / `t_start` in [0, num_train_timesteps), one camera per image), so these two methods
+receive valid (B, H, W, 3) batches in [0, 1] and need no checks of their own.
+
+`_relevance` is the colour saturation (chroma, max - min over RGB) of each pixel: exactly where
 desaturating changes the image, so the regional pipeline localises the colourful parts of the
-scene. `edit()` blends the images towards their luminance; a lower start timestep blends less, as
+scene. `_edit` blends the images towards their luminance; a lower start timestep blends less, as
 partial denoising from a lower noise level keeps more of the input. The prompt text is ignored.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence
+from typing import List, Optional
 
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.guidance.base import Guidance, check_images
+from gs_regional.guidance.base import Guidance
 from gs_regional.registry import register
 
 
@@ -30,7 +35,6 @@ class GrayscaleEditor(Guidance):
     class Config:
         strength: float = 1.0  # 1: fully grey; 0: unchanged
         luma: List[float] = field(default_factory=lambda: [0.299, 0.587, 0.114])  # Rec. 601 weights
-        num_train_timesteps: int = 1000  # t_start is read on this scale
 
     def __init__(self, cfg=None, where: str = "system.guidance") -> None:
         super().__init__(cfg, where)
@@ -43,25 +47,14 @@ class GrayscaleEditor(Guidance):
         w = torch.tensor(self.cfg.luma, dtype=images.dtype, device=images.device)
         return (images * w).sum(-1)
 
-    def relevance(self, images, prompt, timestep=600, samples=1, seed=0, cameras=None) -> torch.Tensor:
-        images = check_images(images)
+    def _relevance(self, images, prompt, timestep, samples, seed, cameras) -> torch.Tensor:
         chroma = images.amax(-1) - images.amin(-1)  # (B, H, W): 0 for greys, 1 for pure colours
         peak = chroma.flatten(1).amax(1).clamp_min(1e-6)[:, None, None]
         return (chroma / peak).clamp(0, 1)
 
-    def edit(
-        self,
-        images: torch.Tensor,
-        cond_images: torch.Tensor,
-        prompt: str,
-        t_start: Optional[int] = None,
-        seed: int = 0,
-        cameras: Optional[Sequence] = None,
-    ) -> torch.Tensor:
-        images = check_images(images)
-        check_images(cond_images, "cond_images")
+    def _edit(self, images, cond_images, prompt, t_start: Optional[int], seed, cameras) -> torch.Tensor:
         amount = self.cfg.strength
-        if t_start is not None:
-            amount *= min(max(float(t_start) / self.cfg.num_train_timesteps, 0.0), 1.0)
+        if t_start is not None:  # t_start is in [0, num_train_timesteps) here
+            amount *= t_start / self.num_train_timesteps
         grey = self.luminance(images)[..., None].expand_as(images)
         return (images + amount * (grey - images)).clamp(0, 1)

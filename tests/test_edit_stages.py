@@ -7,6 +7,7 @@ from gs_regional.data.cameras import Camera
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, unproject
 from gs_regional.edit.localize import expand_selection, mask_metrics
 from gs_regional.edit.views import camera_path, nearest_cameras, order_by_azimuth, spread_subset
+from gs_regional.utils.sh import sh_to_rgb
 
 
 def look_at(center, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0), size=32, f=40.0, name=""):
@@ -91,7 +92,7 @@ def test_depth_initialization_recovers_a_known_bump():
     assert torch.allclose(d_new[block], torch.full((int(block.sum()),), 3.0), rtol=1e-4)
     cam_pts = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
     assert torch.allclose(cam_pts[:, 2], torch.full_like(cam_pts[:, 2], 3.0), rtol=1e-4)
-    rgb = params["sh_dc"] * 0.28209479177387814 + 0.5
+    rgb = sh_to_rgb(params["sh_dc"])
     assert torch.allclose(rgb, torch.tensor([0.9, 0.1, 0.1]).expand_as(rgb), atol=1e-5)
     capped, rep2, _ = new_gaussians_from_depth(
         cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, median=1, scale_factor=1.0, change_blur=0.0, max_new=7), sh_degree=0

@@ -8,14 +8,8 @@ import pytest
 import torch
 
 import gs_regional
-from gs_regional.geometry.gaussian_model import (
-    DEFAULT_LR,
-    PARAM_NAMES,
-    SH_C0,
-    GaussianModel,
-    knn_sq_dists,
-    quat_to_rotmat,
-)
+from gs_regional.geometry.gaussian_model import DEFAULT_LR, PARAM_NAMES, GaussianModel, knn_sq_dists
+from gs_regional.utils.sh import SH_C0
 
 
 def make_model(n=12, degree=1, seed=0):
@@ -325,12 +319,3 @@ def test_optimizer_param_groups():
     assert by_name["quats"]["params"][0] is m.quats
     with pytest.raises(ValueError, match="colour"):
         m.optimizer_param_groups({"colour": 1.0})
-
-
-def test_quat_to_rotmat_is_a_rotation():
-    r = quat_to_rotmat(torch.randn(5, 4))
-    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3).expand(5, 3, 3), atol=1e-5, rtol=0)
-    torch.testing.assert_close(torch.det(r), torch.ones(5))
-    assert torch.equal(quat_to_rotmat(torch.tensor([2.0, 0, 0, 0])), torch.eye(3))
-    np.testing.assert_allclose(quat_to_rotmat(torch.tensor([math.cos(0.5), 0, 0, math.sin(0.5)]))[:2, :2].numpy(),
-                               [[math.cos(1), -math.sin(1)], [math.sin(1), math.cos(1)]], atol=1e-6)

@@ -11,8 +11,9 @@ from gs_regional.data.cameras import Camera
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find
 from gs_regional.renderers import gsplat_rasterizer as gsplat_mod
-from gs_regional.renderers.sh import SH_C0, eval_sh, num_sh_coeffs, rgb_to_sh, sh_to_color
 from gs_regional.renderers.torch_rasterizer import TorchRasterizer
+from gs_regional.utils.rotations import quat_to_rotmat
+from gs_regional.utils.sh import SH_C0, eval_sh, num_sh_coeffs, rgb_to_sh, sh_to_color
 
 PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -137,14 +138,7 @@ def reference_render(model, cam, background=None, override=None, near=0.01, bloc
 
 def _rotation(seed):
     g = torch.Generator().manual_seed(seed)
-    w, x, y, z = F.normalize(torch.randn(4, generator=g), dim=0).tolist()
-    return torch.tensor(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return quat_to_rotmat(torch.randn(4, generator=g).double()).float()
 
 
 def make_camera(seed=0):

@@ -7,7 +7,7 @@ import torch
 from gs_regional import find
 from gs_regional.config import ConfigError
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.renderers.sh import sh_to_rgb
+from gs_regional.utils.sh import sh_to_rgb
 from gs_regional.sim.scene import (
     CAMERA_AZIMUTH_SPAN,
     CAMERA_RADIUS,

@@ -13,8 +13,10 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+import torch
 
 from gs_regional.data.cameras import Camera
+from gs_regional.utils.rotations import quat_to_rotmat
 
 # model id -> (name, number of parameters), from COLMAP's src/colmap/sensor/models.h
 CAMERA_MODELS: Dict[int, Tuple[str, int]] = {
@@ -301,18 +303,6 @@ def read_points3d(model_dir: str) -> ColmapPoints:
 # ----------------------------------------------------------------------------- conversion
 
 
-def qvec_to_rotmat(qvec) -> np.ndarray:
-    """Rotation matrix of a (w, x, y, z) quaternion (normalised first)."""
-    w, x, y, z = np.asarray(qvec, np.float64) / np.linalg.norm(qvec)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def intrinsics(cam: ColmapCamera, where: str = "") -> Tuple[float, float, float, float, Optional[tuple]]:
     """(fx, fy, cx, cy, distortion or None) of a COLMAP camera; unsupported models are an error."""
     p = cam.params
@@ -367,7 +357,7 @@ def load_colmap_cameras(model_dir: str) -> List[Camera]:
         if dist is not None and not any(dist):
             dist = None
         w2c = np.eye(4)
-        w2c[:3, :3] = qvec_to_rotmat(img.qvec)
+        w2c[:3, :3] = quat_to_rotmat(torch.as_tensor(img.qvec, dtype=torch.float64)).numpy()
         w2c[:3, 3] = img.tvec
         out.append(
             Camera(

@@ -9,32 +9,25 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.base import DepthEstimator
-from gs_regional.guidance.base import check_images
+from gs_regional.registry import register
+from gs_regional.utils.image import resize, to_nchw
 from gs_regional.utils.pretrained import (
+    Pretrained,
     PretrainedLoadError,
     batches,
-    check_local_folder,
-    load_pretrained,
-    resize,
-    resolve_device,
-    resolve_dtype,
+    processor_normalization,
+    processor_resample,
+    processor_size,
 )
-from gs_regional.registry import register
 
 # Model families whose prediction is metric depth rather than relative disparity.
 _METRIC_DEPTH_TYPES = {"glpn", "zoedepth", "depth_pro"}
-_PIL_RESAMPLE = {0: "nearest", 2: "bilinear", 3: "bicubic"}  # others (lanczos, box, ...) -> bicubic
-
-
-def _get(size, key):
-    """Read a field of a processor size (a transformers SizeDict or a plain dict)."""
-    return size.get(key) if isinstance(size, dict) else getattr(size, key, None)
 
 
 def dpt_resize_size(h: int, w: int, out_h: int, out_w: int, keep_aspect_ratio: bool, multiple: int) -> Tuple[int, int]:
@@ -67,46 +60,29 @@ class DepthAnything(DepthEstimator):
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)
-        from transformers import AutoConfig, AutoImageProcessor, AutoModelForDepthEstimation
+        from transformers import AutoImageProcessor, AutoModelForDepthEstimation
         from transformers.models.auto.modeling_auto import MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES
 
         c = self.cfg
-        if c.max_batch_size < 1:
-            raise ValueError(f"max_batch_size must be >= 1, got {c.max_batch_size}")
-        self.device = resolve_device(c.device)
-        self.dtype = resolve_dtype(c.dtype, self.device)
-        p, kw = c.pretrained, dict(local_files_only=c.local_files_only)
-        check_local_folder(p, {"": ("config.json",)}, "DepthAnything")
-        config = load_pretrained("the depth model config", p, c.local_files_only, lambda: AutoConfig.from_pretrained(p, **kw))
-        model_type = getattr(config, "model_type", None)
-        if model_type not in MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES:
-            raise PretrainedLoadError(
-                f"DepthAnything: '{p}' holds a '{model_type}' model ({', '.join(config.architectures or []) or '?'}), "
-                f"not a depth-estimation model; expected one of {', '.join(MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES)}"
-            )
-        check_local_folder(p, {"": ("preprocessor_config.json",)}, "DepthAnything (image processor)")
-        self.model = load_pretrained(
-            "the depth model", p, c.local_files_only,
-            lambda: AutoModelForDepthEstimation.from_pretrained(p, dtype=self.dtype, **kw),
-        )
-        self.model.requires_grad_(False).eval().to(self.device)
-        proc = load_pretrained(
-            "the depth image processor", p, c.local_files_only, lambda: AutoImageProcessor.from_pretrained(p, **kw)
-        )
-        self.metric = model_type in _METRIC_DEPTH_TYPES or getattr(config, "depth_estimation_type", "") == "metric"
+        source = Pretrained("DepthAnything", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size)
+        self.device, self.dtype = source.device, source.dtype
+        config = source.load_config(MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES, "depth-estimation")
+        source.require({"": ("preprocessor_config.json",)}, "image processor")
+        self.model = source.load_frozen("the depth model", AutoModelForDepthEstimation.from_pretrained, dtype=self.dtype)
+        proc = source.load("the depth image processor", AutoImageProcessor.from_pretrained)
+        self.metric = config.model_type in _METRIC_DEPTH_TYPES or getattr(config, "depth_estimation_type", "") == "metric"
         # Preprocessing parameters, read from the processor config.
         self.do_resize = bool(getattr(proc, "do_resize", True))
         size = getattr(proc, "size", None)
-        self.size = (_get(size, "height"), _get(size, "width")) if size is not None else (None, None)
+        self.size = (processor_size(size, "height"), processor_size(size, "width"))
         if self.do_resize and None in self.size:
-            raise PretrainedLoadError(f"DepthAnything: the image processor of '{p}' has no height/width size: {size}")
+            raise PretrainedLoadError(f"DepthAnything: the image processor of '{c.pretrained}' has no height/width size: {size}")
         self.keep_aspect_ratio = bool(getattr(proc, "keep_aspect_ratio", False))
         patch = getattr(config, "patch_size", 1) or 1
         self.multiple = int(getattr(proc, "ensure_multiple_of", None) or patch)
-        self.mode = _PIL_RESAMPLE.get(int(getattr(proc, "resample", 3) or 3), "bicubic")
+        self.mode = processor_resample(proc)
         self.do_normalize = bool(getattr(proc, "do_normalize", True))
-        self.mean = torch.tensor(list(proc.image_mean), dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
-        self.std = torch.tensor(list(proc.image_std), dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.mean, self.std = processor_normalization(proc, self.device)
 
     def input_size(self, h: int, w: int) -> Tuple[int, int]:
         """The size the model sees for an h×w image."""
@@ -116,18 +92,17 @@ class DepthAnything(DepthEstimator):
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """(B, H, W, 3) in [0, 1] -> the model's normalised (B, 3, h, w) pixel values, float32."""
-        x = images.permute(0, 3, 1, 2).float().to(self.device)
+        x = to_nchw(images).to(self.device)
         x = resize(x, self.input_size(*images.shape[1:3]), self.mode).clamp(0, 1)
         if self.do_normalize:
             x = (x - self.mean) / self.std
         return x
 
-    def disparity(self, images: torch.Tensor, cameras: Optional[Sequence[Camera]] = None) -> torch.Tensor:
+    def _disparity(self, images: torch.Tensor, cameras: Optional[List[Camera]]) -> torch.Tensor:
         """Relative disparity (B, H, W) at the input resolution (larger = nearer), float32.
 
         Metric-depth models (depth_estimation_type "metric", ZoeDepth, GLPN, DepthPro) are
         inverted to disparity. The prediction is resized back bilinearly (no overshoot)."""
-        images = check_images(images)
         b_all, h, w = images.shape[:3]
         x = self.preprocess(images)
         out = []

@@ -8,10 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
-from gs_regional.guidance.base import gaussian_blur
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
-
-SH_C0 = 0.28209479177387814
+from gs_regional.utils.image import dilate, gaussian_blur
+from gs_regional.utils.sh import rgb_to_sh
 
 
 @dataclass
@@ -54,13 +53,6 @@ def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Ten
             gain, offset = torch.linalg.lstsq(A, y[:, c : c + 1]).solution[:, 0].tolist()
         out[..., c] = image[..., c] * gain + offset
     return out.clamp(0, 1)
-
-
-def dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
-    if px <= 0:
-        return mask.bool()
-    m = mask.float()[None, None]
-    return (F.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[0, 0] > 0.5)
 
 
 def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -161,7 +153,7 @@ def new_gaussians_from_depth(
         "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(k, 1),
         "log_scales": torch.log(footprint.clamp_min(1e-6))[:, None].repeat(1, 3),
         "opacity_logits": torch.logit(torch.full((k,), cfg.opacity, device=device)),
-        "sh_dc": (colors - 0.5) / SH_C0,
+        "sh_dc": rgb_to_sh(colors),
         "sh_rest": torch.zeros(k, (sh_degree + 1) ** 2 - 1, 3, device=device),
     }
     report["added"] = k

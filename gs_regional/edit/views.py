@@ -7,6 +7,7 @@ from typing import List, Sequence
 import torch
 
 from gs_regional.data.cameras import Camera
+from gs_regional.utils.rotations import quat_to_rotmat, rotmat_to_quat
 
 
 def spread_subset(indices: Sequence[int], k: int) -> List[int]:
@@ -26,35 +27,6 @@ def nearest_cameras(cameras: Sequence[Camera], center_index: int, m: int, among:
     dist = torch.stack([(cameras[i].center - c0).norm() for i in others]) if others else torch.zeros(0)
     order = torch.argsort(dist, stable=True).tolist()
     return [others[j] for j in order[:m]]
-
-
-def _quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
-    R = R.double()
-    w = torch.sqrt(torch.clamp(1 + R[0, 0] + R[1, 1] + R[2, 2], min=1e-12)) / 2
-    if w > 1e-3:
-        return torch.stack([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)])
-    # Rotation near 180 degrees: use the largest diagonal element.
-    i = int(torch.argmax(torch.diagonal(R)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    s = torch.sqrt(torch.clamp(1 + R[i, i] - R[j, j] - R[k, k], min=1e-12)) * 2
-    q = torch.zeros(4, dtype=torch.float64)
-    q[0] = (R[k, j] - R[j, k]) / s
-    q[1 + i] = s / 4
-    q[1 + j] = (R[j, i] + R[i, j]) / s
-    q[1 + k] = (R[k, i] + R[i, k]) / s
-    return q
-
-
-def _matrix_from_quat(q: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = (q / q.norm()).tolist()
-    return torch.tensor(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ],
-        dtype=torch.float64,
-    )
 
 
 def _slerp(q0: torch.Tensor, q1: torch.Tensor, t: float) -> torch.Tensor:
@@ -81,8 +53,8 @@ def camera_path(cameras: Sequence[Camera], n_frames: int) -> List[Camera]:
         i = min(int(s), segs - 1)
         t = s - i
         a, b = cameras[i], cameras[i + 1]
-        q = _slerp(_quat_from_matrix(a.world_to_camera[:3, :3]), _quat_from_matrix(b.world_to_camera[:3, :3]), t)
-        R = _matrix_from_quat(q)  # world-to-camera rotation
+        qa, qb = (rotmat_to_quat(c.world_to_camera[:3, :3].double()) for c in (a, b))
+        R = quat_to_rotmat(_slerp(qa, qb, t))  # world-to-camera rotation
         center = (1 - t) * a.center.double() + t * b.center.double()
         w2c = torch.eye(4, dtype=torch.float64)
         w2c[:3, :3] = R

@@ -36,10 +36,11 @@ from gs_regional.geometry.ply import PlyGaussians, read_ply, write_ply
 from gs_regional.registry import register
 from gs_regional.utils.base import BaseModule
 from gs_regional.utils.io import check_not_overwriting
+from gs_regional.utils.rotations import quat_to_rotmat
+from gs_regional.utils.sh import rgb_to_sh
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 ROW_BUFFERS = ("mask", "generation", "grad_accum", "grad_count", "max_radii2d", "extras")
-SH_C0 = 0.28209479177387814
 EDITABLE = "editable"  # trainable-row rule: mask | generation > 0, evaluated at backward time
 
 # Learning rates of the original 3DGS trainer; `means` is multiplied by the scene extent.
@@ -53,20 +54,6 @@ DEFAULT_LR = {
 }
 
 Optimizers = Union[None, torch.optim.Optimizer, List[torch.optim.Optimizer]]
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """(..., 4) quaternions (w, x, y, z), any norm -> (..., 3, 3) rotation matrices."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def _morton_order(points: torch.Tensor) -> torch.Tensor:
@@ -474,7 +461,7 @@ class GaussianModel(BaseModule):
             "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=xyz.device).repeat(n, 1),
             "log_scales": torch.log(torch.sqrt(mean_d2))[:, None].repeat(1, 3),
             "opacity_logits": torch.full((n,), math.log(opacity / (1 - opacity)), device=xyz.device),
-            "sh_dc": (rgb - 0.5) / SH_C0,
+            "sh_dc": rgb_to_sh(rgb),
             "sh_rest": xyz.new_zeros((n, k1, 3)),
         }
         model = cls({"sh_degree": sh_degree}, n=0)

@@ -1,45 +1,39 @@
-"""The guidance interface shared by `instructpix2pix`, `simulated-editor` and user plugins."""
+"""The guidance interface shared by `instructpix2pix`, `simulated-editor` and user plugins.
+
+Template method (as threestudio's base modules): the public `relevance`, `mask` and `edit`
+validate and convert their arguments once (images, cameras, prompt, timesteps), call the plugin's
+`_relevance` / `_edit`, and check the shape of what it returns. A plugin implements only
+`_relevance` and `_edit` and receives checked inputs.
+"""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import torch
-import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
-from gs_regional.utils.base import Configurable
-
-
-def gaussian_blur(maps: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian filter of (B, H, W) maps, reflect-padded."""
-    if sigma <= 0:
-        return maps
-    radius = max(1, int(math.ceil(3 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=maps.dtype, device=maps.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    m = maps[:, None]
-    h, w = m.shape[-2:]
-    pad_w, pad_h = min(radius, w - 1), min(radius, h - 1)
-    m = F.pad(m, (pad_w, pad_w, 0, 0), mode="reflect" if pad_w > 0 else "replicate")
-    m = F.conv2d(m, k[radius - pad_w : radius + pad_w + 1].view(1, 1, 1, -1))
-    m = F.pad(m, (0, 0, pad_h, pad_h), mode="reflect" if pad_h > 0 else "replicate")
-    m = F.conv2d(m, k[radius - pad_h : radius + pad_h + 1].view(1, 1, -1, 1))
-    return m[:, 0]
+from gs_regional.utils.base import Configurable, component_name
+from gs_regional.utils.image import check_cameras, check_images, check_output_shape, gaussian_blur
 
 
 class Guidance(Configurable):
     """A 2D editor. Images are (B, H, W, 3) float tensors in [0, 1].
 
     Counters (reported by systems): `unet_evals` (one guided step on B images = 3*B),
-    `vae_encodes`, `vae_decodes` (per image).
+    `vae_encodes`, `vae_decodes` (per image); a plugin updates those it spends.
     """
 
     @dataclass
     class Config:
         pass
+
+    # Timesteps (`timestep` of relevance, `t_start` of edit) are integers in
+    # [0, num_train_timesteps): Stable Diffusion's training schedule unless a plugin says otherwise.
+    num_train_timesteps: int = 1000
+    # True for editors that cannot work without one camera per image (simulators rendering a
+    # known scene): calls without cameras are then rejected.
+    requires_cameras: bool = False
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)
@@ -53,6 +47,8 @@ class Guidance(Configurable):
     def counters(self) -> Dict[str, int]:
         return {"unet_evals": self.unet_evals, "vae_encodes": self.vae_encodes, "vae_decodes": self.vae_decodes}
 
+    # ------------------------------------------------------------------ the interface
+
     def relevance(
         self,
         images: torch.Tensor,
@@ -62,8 +58,18 @@ class Guidance(Configurable):
         seed: int = 0,
         cameras: Optional[Sequence[Camera]] = None,
     ) -> torch.Tensor:
-        """Per-view relevance maps (B, H, W) in [0, 1], each normalised to its own max."""
-        raise NotImplementedError
+        """Per-view relevance maps (B, H, W) in [0, 1], each normalised to its own max: where the
+        instruction `prompt` would change each image, judged at noise level `timestep` and averaged
+        over `samples` noise draws (seeded by `seed`)."""
+        where = f"{component_name(self)}.relevance"
+        images = check_images(images, f"{where}: images")
+        cameras = check_cameras(cameras, images.shape[0], where, self.requires_cameras)
+        self._check_prompt(prompt, where)
+        self._check_timestep(timestep, "timestep", where)
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+            raise ValueError(f"{where}: samples must be an integer >= 1, got {samples!r}")
+        maps = self._relevance(images, prompt, timestep, samples, seed, cameras)
+        return check_output_shape(maps, images.shape[:3], where)
 
     def mask(
         self,
@@ -80,8 +86,8 @@ class Guidance(Configurable):
 
         γ = 0 means "everything" (a global edit) and returns all ones without running the model.
         """
-        b, h, w = images.shape[:3]
         if threshold <= 0:
+            b, h, w = check_images(images, f"{component_name(self)}.mask: images").shape[:3]
             return torch.ones(b, h, w, device=images.device)
         rel = self.relevance(images, prompt, timestep=timestep, samples=samples, seed=seed, cameras=cameras)
         binary = (rel >= threshold).float()
@@ -97,21 +103,53 @@ class Guidance(Configurable):
         cameras: Optional[Sequence[Camera]] = None,
     ) -> torch.Tensor:
         """Edited images (B, H, W, 3): noise `images` to `t_start` (None: pure noise, a full edit) and
-        denoise conditioned on `cond_images` and `prompt`."""
-        raise NotImplementedError
+        denoise conditioned on `cond_images` (the unedited views, same shape) and `prompt`."""
+        where = f"{component_name(self)}.edit"
+        images = check_images(images, f"{where}: images")
+        cond_images = check_images(cond_images, f"{where}: cond_images")
+        if images.shape != cond_images.shape:
+            raise ValueError(
+                f"{where}: images {tuple(images.shape)} and cond_images {tuple(cond_images.shape)} must have the same shape"
+            )
+        cameras = check_cameras(cameras, images.shape[0], where, self.requires_cameras)
+        self._check_prompt(prompt, where)
+        if t_start is not None:
+            self._check_timestep(t_start, "t_start", where)
+        edited = self._edit(images, cond_images, prompt, t_start, seed, cameras)
+        return check_output_shape(edited, images.shape, where)
 
+    # ------------------------------------------------------------------ what a plugin implements
 
-def check_images(images: torch.Tensor, what: str = "images") -> torch.Tensor:
-    """Validate a (B, H, W, 3) float batch in [0, 1]; a single (H, W, 3) image is batched."""
-    if not isinstance(images, torch.Tensor):
-        raise TypeError(f"{what} must be a torch.Tensor of shape (B, H, W, 3), got {type(images).__name__}")
-    if images.dim() == 3:
-        images = images[None]
-    if images.dim() != 4 or images.shape[-1] != 3:
-        raise ValueError(f"{what} must have shape (B, H, W, 3), got {tuple(images.shape)}")
-    if not images.is_floating_point():
-        raise TypeError(f"{what} must be float in [0, 1], got dtype {images.dtype}")
-    lo, hi = float(images.min()), float(images.max())
-    if lo < -1e-3 or hi > 1 + 1e-3:
-        raise ValueError(f"{what} must be in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
-    return images.clamp(0, 1)
+    def _relevance(
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: Optional[List[Camera]]
+    ) -> torch.Tensor:
+        """Implement this: maps (B, H, W) in [0, 1] for a checked (B, H, W, 3) batch `images`, a
+        non-empty `prompt`, an integer `timestep` in [0, num_train_timesteps), `samples` >= 1 and
+        `cameras` None or a list of one camera per image."""
+        raise NotImplementedError(f"{type(self).__name__} must implement _relevance(...)")
+
+    def _edit(
+        self,
+        images: torch.Tensor,
+        cond_images: torch.Tensor,
+        prompt: str,
+        t_start: Optional[int],
+        seed: int,
+        cameras: Optional[List[Camera]],
+    ) -> torch.Tensor:
+        """Implement this: edited (B, H, W, 3) images in [0, 1] for checked batches `images` and
+        `cond_images` of the same shape, a non-empty `prompt`, `t_start` None or an integer in
+        [0, num_train_timesteps) and `cameras` None or a list of one camera per image."""
+        raise NotImplementedError(f"{type(self).__name__} must implement _edit(...)")
+
+    # ------------------------------------------------------------------ checks
+
+    @staticmethod
+    def _check_prompt(prompt: str, where: str) -> None:
+        if not isinstance(prompt, str) or not prompt.strip():
+            raise ValueError(f"{where}: prompt must be a non-empty instruction string, got {prompt!r}")
+
+    def _check_timestep(self, t: int, name: str, where: str) -> None:
+        n = self.num_train_timesteps
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < n:
+            raise ValueError(f"{where}: {name} must be an integer timestep in [0, {n - 1}], got {t!r}")

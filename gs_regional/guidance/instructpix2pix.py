@@ -1,10 +1,11 @@
 """InstructPix2Pix guidance (diffusers UNet + VAE + CLIP text encoder + DDIM scheduler).
 
 Two operations (DESIGN §3.1, §3.3):
-  * `relevance(images, prompt)`: noise the image latents to τ and take the per-pixel difference of
+  * `_relevance(images, prompt)`: noise the image latents to τ and take the per-pixel difference of
     the text-conditioned and the empty-prompt noise predictions (both conditioned on the image);
-  * `edit(images, cond_images, prompt, t_start)`: partial (or full) DDIM denoising with IP2P's
+  * `_edit(images, cond_images, prompt, t_start)`: partial (or full) DDIM denoising with IP2P's
     3-branch classifier-free guidance, as diffusers' StableDiffusionInstructPix2PixPipeline.
+The public `relevance` / `mask` / `edit` of `Guidance` check the arguments before calling them.
 
 The weights live in this plain `Configurable`, not in any nn.Module of a system, so they never end
 up in a Lightning checkpoint. diffusers/transformers are imported lazily (importing the package
@@ -15,25 +16,16 @@ from __future__ import annotations
 import contextlib
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Sequence, TypeVar
+from typing import Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
-from gs_regional.guidance.base import Guidance, check_images
+from gs_regional.guidance.base import Guidance
 from gs_regional.registry import register
-from gs_regional.utils.pretrained import (
-    PretrainedLoadError,
-    batches,
-    check_local_folder,
-    load_pretrained,
-    resize,
-    resolve_device,
-    resolve_dtype,
-)
-
-T = TypeVar("T")
+from gs_regional.utils.image import resize, to_nchw
+from gs_regional.utils.pretrained import Pretrained, PretrainedLoadError, batches
 
 # -------------------------------------------------------------------------------- the guidance
 
@@ -67,42 +59,41 @@ class InstructPix2Pix(Guidance):
         c = self.cfg
         if c.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
-        if c.max_batch_size < 1:
-            raise ValueError(f"max_batch_size must be >= 1, got {c.max_batch_size}")
-        self.device = resolve_device(c.device)
-        self.dtype = resolve_dtype(c.dtype, self.device)
-        self._load()
+        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size)
+        self.device, self.dtype = source.device, source.dtype
+        self._load(source)
         self._emb_cache: Dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------ loading
 
-    def _load(self) -> None:
+    def _load(self, source: Pretrained) -> None:
         from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
         from transformers import CLIPTextModel, CLIPTokenizer
 
         c = self.cfg
         p = c.pretrained
-        check_local_folder(p, _IP2P_COMPONENTS, "InstructPix2Pix")
-        kw = dict(local_files_only=c.local_files_only)
+        source.require(_IP2P_COMPONENTS)
+        # With cpu_offload the modules live on the CPU and visit the device only while used.
+        home = torch.device("cpu") if c.cpu_offload else self.device
 
-        def load(sub: str, fn: Callable[[], T]) -> T:
-            return load_pretrained(f"InstructPix2Pix component '{sub}'", p, c.local_files_only, fn)
+        def load(sub: str, from_pretrained, **kw):
+            return source.load(f"InstructPix2Pix component '{sub}'", from_pretrained, subfolder=sub, **kw)
 
-        self.tokenizer = load("tokenizer", lambda: CLIPTokenizer.from_pretrained(p, subfolder="tokenizer", **kw))
-        self.text_encoder = load(
-            "text_encoder", lambda: CLIPTextModel.from_pretrained(p, subfolder="text_encoder", dtype=self.dtype, **kw)
-        )
-        self.vae = load("vae", lambda: AutoencoderKL.from_pretrained(p, subfolder="vae", torch_dtype=self.dtype, **kw))
-        self.unet = load(
-            "unet", lambda: UNet2DConditionModel.from_pretrained(p, subfolder="unet", torch_dtype=self.dtype, **kw)
-        )
-        sched_cfg = load("scheduler", lambda: DDIMScheduler.load_config(p, subfolder="scheduler", **kw))
+        def load_frozen(sub: str, from_pretrained, **kw):
+            return source.load_frozen(f"InstructPix2Pix component '{sub}'", from_pretrained, home, subfolder=sub, **kw)
+
+        self.tokenizer = load("tokenizer", CLIPTokenizer.from_pretrained)
+        self.text_encoder = load_frozen("text_encoder", CLIPTextModel.from_pretrained, dtype=self.dtype)
+        self.vae = load_frozen("vae", AutoencoderKL.from_pretrained, torch_dtype=self.dtype)
+        self.unet = load_frozen("unet", UNet2DConditionModel.from_pretrained, torch_dtype=self.dtype)
+        sched_cfg = load("scheduler", DDIMScheduler.load_config)
         overrides = {}
         if sched_cfg.get("_class_name") != "DDIMScheduler":
             # The hub IP2P ships an Euler scheduler config; DDIM's own defaults (clip_sample=True,
             # set_alpha_to_one=True) are wrong for Stable Diffusion latents, so use SD's DDIM settings.
             overrides = dict(clip_sample=False, set_alpha_to_one=False)
         self.scheduler = DDIMScheduler.from_config(sched_cfg, **overrides)
+        self.num_train_timesteps = int(self.scheduler.config.num_train_timesteps)  # the range Guidance checks
 
         if self.unet.config.in_channels != 2 * self.vae.config.latent_channels:
             raise PretrainedLoadError(
@@ -123,12 +114,6 @@ class InstructPix2Pix(Guidance):
         self.vae.set_attn_processor(Processor())
         if c.channels_last:
             self.unet.to(memory_format=torch.channels_last)
-        home = torch.device("cpu") if c.cpu_offload else self.device
-        for m in self.components():
-            m.requires_grad_(False).eval().to(home)
-
-    def components(self) -> List[torch.nn.Module]:
-        return [self.text_encoder, self.vae, self.unet]
 
     @contextlib.contextmanager
     def _using(self, module: torch.nn.Module):
@@ -143,11 +128,6 @@ class InstructPix2Pix(Guidance):
             module.to("cpu")
 
     # ------------------------------------------------------------------ text
-
-    @staticmethod
-    def _check_prompt(prompt: str) -> None:
-        if not isinstance(prompt, str) or not prompt.strip():
-            raise ValueError(f"prompt must be a non-empty instruction string, got {prompt!r}")
 
     def _embed(self, prompt: str) -> torch.Tensor:
         """(1, L, D) text-encoder hidden states, cached per prompt ("" is the unconditional one)."""
@@ -175,7 +155,7 @@ class InstructPix2Pix(Guidance):
         f = self.vae_scale_factor
         h, w = images.shape[1:3]
         size = (max(f, round(h / f) * f), max(f, round(w / f) * f))
-        x = resize(images.permute(0, 3, 1, 2).float(), size)
+        x = resize(to_nchw(images), size)
         return x.clamp(0, 1).to(self.device)
 
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
@@ -207,32 +187,15 @@ class InstructPix2Pix(Guidance):
         # Drawn on the CPU so that results do not depend on the device or on the batch split.
         return torch.randn(shape, generator=generator, dtype=torch.float32).to(self.device)
 
-    def _check_timestep(self, t: int, name: str) -> int:
-        n = self.scheduler.config.num_train_timesteps
-        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < n:
-            raise ValueError(f"{name} must be an integer timestep in [0, {n - 1}], got {t!r}")
-        return t
-
     # ------------------------------------------------------------------ the interface
 
-    def relevance(
-        self,
-        images: torch.Tensor,
-        prompt: str,
-        timestep: int = 600,
-        samples: int = 1,
-        seed: int = 0,
-        cameras: Optional[Sequence[Camera]] = None,
+    def _relevance(
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: Optional[List[Camera]]
     ) -> torch.Tensor:
         """Per-view maps (B, H, W) in [0, 1]: D = mean over latent channels of
         |ε(z_τ, x, c) − ε(z_τ, x, ∅)|, averaged over `samples` noise draws, bilinearly upsampled from
         latent to image size, then divided by its per-view max (each view's strongest response is 1;
         an all-zero map stays 0). z0 is the mode of the VAE posterior (deterministic)."""
-        images = check_images(images)
-        self._check_prompt(prompt)
-        timestep = self._check_timestep(timestep, "timestep")
-        if samples < 1:
-            raise ValueError(f"samples must be >= 1, got {samples}")
         b_all, h, w = images.shape[:3]
         mode = self._encode(self._prepare(images))  # one encode serves as z0 and as the image condition
         z0 = mode * self.scaling_factor
@@ -254,14 +217,8 @@ class InstructPix2Pix(Guidance):
         diff = diff / diff.flatten(1).amax(dim=1).clamp_min(1e-12)[:, None, None]
         return diff.clamp(0, 1).to(images.device)
 
-    def edit(
-        self,
-        images: torch.Tensor,
-        cond_images: torch.Tensor,
-        prompt: str,
-        t_start: Optional[int] = None,
-        seed: int = 0,
-        cameras: Optional[Sequence[Camera]] = None,
+    def _edit(
+        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seed: int, cameras
     ) -> torch.Tensor:
         """Edited images (B, H, W, 3) in [0, 1] at the input size.
 
@@ -271,18 +228,10 @@ class InstructPix2Pix(Guidance):
         pipeline: ε = ε_u + s_t(ε_txt − ε_img) + s_i(ε_img − ε_u), branches (text + image),
         (empty text + image), (empty text + zero image latents). Deterministic given `seed`.
         """
-        images = check_images(images, "images")
-        cond_images = check_images(cond_images, "cond_images")
-        if images.shape != cond_images.shape:
-            raise ValueError(
-                f"images {tuple(images.shape)} and cond_images {tuple(cond_images.shape)} must have the same shape"
-            )
-        self._check_prompt(prompt)
         sched = self.scheduler
         sched.set_timesteps(self.cfg.num_inference_steps)
         steps = sched.timesteps
         if t_start is not None:
-            self._check_timestep(t_start, "t_start")
             steps = steps[steps <= t_start]
             if len(steps) == 0:
                 raise ValueError(

@@ -11,26 +11,14 @@ from typing import List, Sequence, Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from gs_regional.guidance.base import check_images
+from gs_regional.utils.image import check_images, resize, to_nchw
 from gs_regional.utils.pretrained import (
-    PretrainedLoadError,
+    Pretrained,
     batches,
-    check_local_folder,
-    load_pretrained,
-    resize,
-    resolve_device,
-    resolve_dtype,
+    processor_normalization,
+    processor_resample,
+    processor_size,
 )
-
-_PIL_RESAMPLE = {0: "nearest", 2: "bilinear", 3: "bicubic"}
-
-
-def _get(size, key):
-    if size is None:
-        return None
-    if isinstance(size, int):
-        return size if key == "shortest_edge" else None
-    return size.get(key) if isinstance(size, dict) else getattr(size, key, None)
 
 
 def _features(out) -> torch.Tensor:
@@ -49,46 +37,27 @@ class ClipMetrics:
         max_batch_size: int = 16,
         local_files_only: bool = False,
     ) -> None:
-        from transformers import AutoConfig, AutoImageProcessor, CLIPModel, CLIPTokenizer
+        from transformers import AutoImageProcessor, CLIPModel, CLIPTokenizer
 
         self.pretrained = pretrained
-        self.device = resolve_device(device)
-        self.dtype = resolve_dtype(dtype, self.device)
-        if max_batch_size < 1:
-            raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        source = Pretrained("ClipMetrics", pretrained, device, dtype, local_files_only, max_batch_size)
+        self.device, self.dtype = source.device, source.dtype
         self.max_batch_size = max_batch_size
-        p, kw = pretrained, dict(local_files_only=local_files_only)
-        check_local_folder(
-            p,
-            {"": ("config.json",)},
-            "ClipMetrics",
-        )
-        config = load_pretrained("the CLIP config", p, local_files_only, lambda: AutoConfig.from_pretrained(p, **kw))
-        if getattr(config, "model_type", None) != "clip":
-            raise PretrainedLoadError(
-                f"ClipMetrics: '{p}' holds a '{getattr(config, 'model_type', None)}' model, not a CLIP model"
-            )
-        check_local_folder(p, {"": ("vocab.json", "tokenizer.json")}, "ClipMetrics (tokenizer)")
-        check_local_folder(p, {"": ("preprocessor_config.json",)}, "ClipMetrics (image processor)")
-        self.model = load_pretrained(
-            "the CLIP model", p, local_files_only, lambda: CLIPModel.from_pretrained(p, dtype=self.dtype, **kw)
-        )
-        self.model.requires_grad_(False).eval().to(self.device)
-        self.tokenizer = load_pretrained(
-            "the CLIP tokenizer", p, local_files_only, lambda: CLIPTokenizer.from_pretrained(p, **kw)
-        )
-        proc = load_pretrained(
-            "the CLIP image processor", p, local_files_only, lambda: AutoImageProcessor.from_pretrained(p, **kw)
-        )
-        self.shortest_edge = _get(proc.size, "shortest_edge")
-        self.resize_hw = (_get(proc.size, "height"), _get(proc.size, "width"))
+        source.load_config({"clip"}, "CLIP")
+        source.require({"": ("vocab.json", "tokenizer.json")}, "tokenizer")
+        source.require({"": ("preprocessor_config.json",)}, "image processor")
+        self.model = source.load_frozen("the CLIP model", CLIPModel.from_pretrained, dtype=self.dtype)
+        self.tokenizer = source.load("the CLIP tokenizer", CLIPTokenizer.from_pretrained)
+        proc = source.load("the CLIP image processor", AutoImageProcessor.from_pretrained)
+        self.shortest_edge = processor_size(proc.size, "shortest_edge")
+        self.resize_hw = (processor_size(proc.size, "height"), processor_size(proc.size, "width"))
         crop = getattr(proc, "crop_size", None)
-        self.crop_hw = (_get(crop, "height"), _get(crop, "width")) if getattr(proc, "do_center_crop", True) else None
+        do_crop = getattr(proc, "do_center_crop", True)
+        self.crop_hw = (processor_size(crop, "height"), processor_size(crop, "width")) if do_crop else None
         if self.crop_hw is not None and None in self.crop_hw:
             self.crop_hw = None
-        self.mode = _PIL_RESAMPLE.get(int(getattr(proc, "resample", 3) or 3), "bicubic")
-        self.mean = torch.tensor(list(proc.image_mean), dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
-        self.std = torch.tensor(list(proc.image_std), dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.mode = processor_resample(proc)
+        self.mean, self.std = processor_normalization(proc, self.device)
         self.max_text_length = min(
             int(self.tokenizer.model_max_length), int(self.model.config.text_config.max_position_embeddings)
         )
@@ -97,7 +66,7 @@ class ClipMetrics:
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """(B, H, W, 3) in [0, 1] -> normalised (B, 3, h, w) pixel values for the vision tower."""
-        x = images.permute(0, 3, 1, 2).float().to(self.device)
+        x = to_nchw(images).to(self.device)
         h, w = x.shape[-2:]
         if self.shortest_edge:
             s = int(self.shortest_edge)

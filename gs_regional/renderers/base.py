@@ -1,4 +1,7 @@
-"""The renderer interface shared by `torch-rasterizer` and `gsplat-rasterizer`."""
+"""The renderer interface shared by `torch-rasterizer` and `gsplat-rasterizer`.
+
+Template method: `render` checks the arguments once (override colours, background) and calls the
+renderer's `_render`; a renderer implements only `_render`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -33,6 +36,11 @@ class Renderer(Configurable):
         far_plane: float = 1e10
         eps2d: float = 0.3  # low-pass added to the 2D covariance diagonal, pixels^2
 
+    def __init__(self, cfg=None, where: str = "") -> None:
+        super().__init__(cfg, where)
+        if self.cfg.tile_size < 1:
+            raise ValueError(f"renderer.tile_size must be >= 1, got {self.cfg.tile_size}")
+
     def render(
         self,
         model,
@@ -40,7 +48,28 @@ class Renderer(Configurable):
         background: Optional[torch.Tensor] = None,
         override_color: Optional[torch.Tensor] = None,
     ) -> Dict[str, torch.Tensor]:
-        raise NotImplementedError
+        means = model.means
+        n = means.shape[0]
+        if override_color is not None:
+            if override_color.dim() != 2 or override_color.shape[0] != n:
+                raise ValueError(
+                    f"override_color must be (N, C) with N = {n} Gaussians, got "
+                    f"{tuple(override_color.shape)}"
+                )
+            bg = None  # the background is zero for features
+        else:
+            bg = self.default_background(means.device) if background is None else background
+            bg = torch.as_tensor(bg, device=means.device, dtype=means.dtype).reshape(-1)
+            if bg.numel() != 3:
+                raise ValueError(f"background must have 3 values, got {bg.numel()}")
+        return self._render(model, camera, bg, override_color)
+
+    def _render(
+        self, model, camera: Camera, background: Optional[torch.Tensor], override_color: Optional[torch.Tensor]
+    ) -> Dict[str, torch.Tensor]:
+        """Implement this: the dict described above. `background` is a (3,) tensor on the model's
+        device and dtype, None when `override_color` (N, C) is given (checked, N rows)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement _render(model, camera, background, override_color)")
 
     def default_background(self, device) -> torch.Tensor:
         return torch.tensor(self.cfg.background, dtype=torch.float32, device=device)

@@ -69,15 +69,10 @@ class GsplatRasterizer(Renderer):
                 f"but torch.cuda.is_available() is False; {INSTALL_HINT}"
             )
 
-    def render(
-        self,
-        model,
-        camera: Camera,
-        background: Optional[torch.Tensor] = None,
-        override_color: Optional[torch.Tensor] = None,
+    def _render(
+        self, model, camera: Camera, bg: Optional[torch.Tensor], override_color: Optional[torch.Tensor]
     ) -> Dict[str, torch.Tensor]:
         means = model.means
-        n = means.shape[0]
         if not means.is_cuda:
             raise RuntimeError(
                 "renderer 'gsplat-rasterizer' needs the model on a CUDA device; call "
@@ -87,21 +82,12 @@ class GsplatRasterizer(Renderer):
         viewmats = camera.world_to_camera.to(device=device, dtype=torch.float32)[None]
         Ks = camera.K.to(device=device)[None]
         if override_color is not None:
-            if override_color.dim() != 2 or override_color.shape[0] != n:
-                raise ValueError(
-                    f"override_color must be (N, C) with N = {n} Gaussians, got "
-                    f"{tuple(override_color.shape)}"
-                )
             colors, sh_degree, backgrounds = override_color, None, None
             channels = override_color.shape[1]
         else:
             colors = torch.cat([model.sh_dc[:, None, :], model.sh_rest], dim=1)
             sh_degree, channels = model.sh_degree, 3
-            bg = self.default_background(device) if background is None else background
-            bg = torch.as_tensor(bg, device=device, dtype=torch.float32).reshape(-1)
-            if bg.numel() != 3:
-                raise ValueError(f"background must have 3 values, got {bg.numel()}")
-            backgrounds = bg[None]
+            backgrounds = bg.float()[None]
         render_colors, render_alphas, meta = _gsplat.rasterization(
             means=means,
             quats=model.quats,

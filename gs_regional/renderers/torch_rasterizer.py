@@ -34,11 +34,11 @@ from typing import Dict, List, Optional, Tuple
 import torch
 from torch.autograd.function import once_differentiable
 
-from gs_regional.geometry.gaussian_model import quat_to_rotmat
 from gs_regional.data.cameras import Camera
 from gs_regional.registry import register
 from gs_regional.renderers.base import Renderer
-from gs_regional.renderers.sh import sh_to_color
+from gs_regional.utils.rotations import quat_to_rotmat
+from gs_regional.utils.sh import sh_to_color
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (gsplat)
 ALPHA_MAX = 0.999
@@ -457,8 +457,6 @@ class TorchRasterizer(Renderer):
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)
-        if self.cfg.tile_size < 1:
-            raise ValueError(f"renderer.tile_size must be >= 1, got {self.cfg.tile_size}")
         if self.cfg.strip_width < 1 or self.cfg.tile_size % self.cfg.strip_width:
             raise ValueError(
                 f"renderer.strip_width must divide renderer.tile_size ({self.cfg.tile_size}), "
@@ -467,12 +465,8 @@ class TorchRasterizer(Renderer):
         if self.cfg.chunk_size < 1:
             raise ValueError(f"renderer.chunk_size must be >= 1, got {self.cfg.chunk_size}")
 
-    def render(
-        self,
-        model,
-        camera: Camera,
-        background: Optional[torch.Tensor] = None,
-        override_color: Optional[torch.Tensor] = None,
+    def _render(
+        self, model, camera: Camera, bg: Optional[torch.Tensor], override_color: Optional[torch.Tensor]
     ) -> Dict[str, torch.Tensor]:
         means = model.means
         n = means.shape[0]
@@ -480,21 +474,7 @@ class TorchRasterizer(Renderer):
         width, height = int(camera.width), int(camera.height)
         viewmat = camera.world_to_camera.to(device=device, dtype=dtype)
         intr = (camera.fx, camera.fy, camera.cx, camera.cy, width, height, self.cfg.eps2d)
-
-        if override_color is not None:
-            if override_color.dim() != 2 or override_color.shape[0] != n:
-                raise ValueError(
-                    f"override_color must be (N, C) with N = {n} Gaussians, got "
-                    f"{tuple(override_color.shape)}"
-                )
-            channels = override_color.shape[1]
-            bg = None  # background is zero for features
-        else:
-            channels = 3
-            bg = self.default_background(device) if background is None else background
-            bg = torch.as_tensor(bg, device=device, dtype=dtype).reshape(-1)
-            if bg.numel() != 3:
-                raise ValueError(f"background must have 3 values, got {bg.numel()}")
+        channels = 3 if override_color is None else override_color.shape[1]
 
         with torch.no_grad():
             proj = project_gaussians(means, model.quats, torch.exp(model.log_scales), viewmat, *intr)

@@ -22,19 +22,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence
+from typing import List
 
 import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.base import DepthEstimator
-from gs_regional.guidance.base import check_images, gaussian_blur
 from gs_regional.registry import register
 from gs_regional.sim.truth import GroundTruthConsumer, camera_for_image, camera_seed
+from gs_regional.utils.image import gaussian_blur
 
 
 @register("simulated-depth")
 class SimulatedDepth(GroundTruthConsumer, DepthEstimator):
+    requires_cameras = True  # it renders the true depth of the ground truth's scenes at each view
+
     @dataclass
     class Config:
         seed: int = 0  # draws the per-view affine map and the noise
@@ -57,16 +59,7 @@ class SimulatedDepth(GroundTruthConsumer, DepthEstimator):
         valid = (alpha > self.cfg.alpha_threshold) & (depth > 1e-6)
         return torch.where(valid, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
 
-    def disparity(self, images: torch.Tensor, cameras: Optional[Sequence[Camera]] = None) -> torch.Tensor:
-        images = check_images(images)
-        if cameras is None:
-            raise ValueError(
-                "simulated-depth.disparity needs cameras=[one Camera per image]: it renders the true "
-                "depth of the ground truth's scenes (it is a simulator, not a depth network)"
-            )
-        cameras = list(cameras)
-        if len(cameras) != images.shape[0]:
-            raise ValueError(f"simulated-depth: {images.shape[0]} images but {len(cameras)} cameras")
+    def _disparity(self, images: torch.Tensor, cameras: List[Camera]) -> torch.Tensor:
         h, w = images.shape[1:3]
         c = self.cfg
         out, self.last_choice = [], []

@@ -32,15 +32,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional
 
 import torch
 import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
-from gs_regional.guidance.base import Guidance, check_images, gaussian_blur
+from gs_regional.guidance.base import Guidance
 from gs_regional.registry import register
 from gs_regional.sim.truth import GroundTruthConsumer, camera_for_image, camera_seed
+from gs_regional.utils.image import gaussian_blur
 
 
 def _alphas_cumprod() -> torch.Tensor:
@@ -89,6 +90,8 @@ def _shift(x: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
 
 @register("simulated-editor")
 class SimulatedEditor(GroundTruthConsumer, Guidance):
+    requires_cameras = True  # it renders the true edited scene at each view
+
     @dataclass
     class Config:
         seed: int = 0  # base seed of the per-view randomness (combined with the call's seed and the camera)
@@ -122,15 +125,7 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
         if not 0 <= self.cfg.side_miss_start <= self.cfg.side_miss_end:
             raise ValueError("simulated-editor: need 0 <= side_miss_start <= side_miss_end (degrees)")
 
-    def _cameras(self, images: torch.Tensor, cameras, op: str) -> List[Camera]:
-        if cameras is None:
-            raise ValueError(
-                f"simulated-editor.{op} needs cameras=[one Camera per image]: it renders the true "
-                f"edited scene at each view (it is a simulator, not a diffusion model)"
-            )
-        cameras = list(cameras)
-        if len(cameras) != images.shape[0]:
-            raise ValueError(f"simulated-editor.{op}: {images.shape[0]} images but {len(cameras)} cameras")
+    def _cameras(self, images: torch.Tensor, cameras: List[Camera], op: str) -> List[Camera]:
         h, w = images.shape[1:3]
         return [camera_for_image(c, h, w, f"simulated-editor.{op}") for c in cameras]
 
@@ -142,19 +137,11 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
         return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
     # ------------------------------------------------------------------ relevance
-    def relevance(
-        self,
-        images: torch.Tensor,
-        prompt: str,
-        timestep: int = 600,
-        samples: int = 1,
-        seed: int = 0,
-        cameras: Optional[Sequence[Camera]] = None,
+    def _relevance(
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: List[Camera]
     ) -> torch.Tensor:
-        images = check_images(images)
         cams = self._cameras(images, cameras, "relevance")
         c = self.cfg
-        samples = max(1, int(samples))
         out = []
         for cam in cams:
             maps = self.truth_renderer.region_maps(cam)
@@ -207,24 +194,12 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
         soft = torch.stack([gaussian_blur(img[..., i][None], c.regen_blur)[0] for i in range(3)], -1)
         return img + k * ((soft * gain + offset).clamp(0, 1) - img)
 
-    def edit(
-        self,
-        images: torch.Tensor,
-        cond_images: torch.Tensor,
-        prompt: str,
-        t_start: Optional[int] = None,
-        seed: int = 0,
-        cameras: Optional[Sequence[Camera]] = None,
+    def _edit(
+        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seed: int, cameras
     ) -> torch.Tensor:
-        images = check_images(images)
-        cond_images = check_images(cond_images, "cond_images")
-        if cond_images.shape != images.shape:
-            raise ValueError(f"cond_images {tuple(cond_images.shape)} must match images {tuple(images.shape)}")
         cams = self._cameras(images, cameras, "edit")
         c = self.cfg
         steps = denoising_steps(t_start, c.num_inference_steps)
-        if t_start is not None and not 0 <= t_start < 1000:
-            raise ValueError(f"simulated-editor.edit: t_start must be in [0, 1000) or None, got {t_start}")
         if steps == 0:
             raise ValueError(f"simulated-editor.edit: t_start={t_start} is below the last DDIM timestep (1): nothing to denoise")
         k = edit_strength(t_start)

@@ -44,7 +44,8 @@ from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find, register
-from gs_regional.renderers.sh import rgb_to_sh
+from gs_regional.utils.rotations import rotmat_to_quat
+from gs_regional.utils.sh import rgb_to_sh
 from gs_regional.sim.truth import GroundTruth
 
 FRONT = (0.0, 0.0, 1.0)  # the direction the figure faces
@@ -169,34 +170,12 @@ def _inside(part: _Ellipsoid, pts: torch.Tensor, margin: float = 0.995) -> torch
     return local.norm(dim=-1) < margin
 
 
-def _matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """(N, 3, 3) rotation matrices -> (N, 4) unit quaternions (w, x, y, z)."""
-    m00, m01, m02 = R[:, 0, 0], R[:, 0, 1], R[:, 0, 2]
-    m10, m11, m12 = R[:, 1, 0], R[:, 1, 1], R[:, 1, 2]
-    m20, m21, m22 = R[:, 2, 0], R[:, 2, 1], R[:, 2, 2]
-    q_abs = torch.sqrt(
-        torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1).clamp_min(0)
-    )
-    cands = torch.stack(
-        [
-            torch.stack([q_abs[:, 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
-            torch.stack([m21 - m12, q_abs[:, 1] ** 2, m10 + m01, m02 + m20], -1),
-            torch.stack([m02 - m20, m10 + m01, q_abs[:, 2] ** 2, m12 + m21], -1),
-            torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[:, 3] ** 2], -1),
-        ],
-        1,
-    ) / (2 * q_abs[:, :, None].clamp_min(0.1))
-    q = cands[torch.arange(R.shape[0]), q_abs.argmax(-1)]
-    q = q / q.norm(dim=-1, keepdim=True)
-    return q * torch.where(q[:, :1] < 0, -1.0, 1.0)
-
-
 def _cov_to_gaussian(cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Covariances (N, 3, 3) -> (log-scales (N, 3), quaternions (N, 4))."""
     evals, evecs = torch.linalg.eigh(cov)
     det = torch.linalg.det(evecs)
     evecs[:, :, 0] *= torch.sign(det)[:, None]  # a proper rotation
-    return 0.5 * torch.log(evals.clamp_min(1e-14)), _matrix_to_quat(evecs)
+    return 0.5 * torch.log(evals.clamp_min(1e-14)), rotmat_to_quat(evecs)
 
 
 def _shade(normals: torch.Tensor) -> torch.Tensor:
@@ -274,7 +253,7 @@ def _background(n: int, gen: torch.Generator):
     R[:, :, 0] *= torch.sign(torch.linalg.det(R))[:, None]  # a proper rotation
     log_scales = torch.log(torch.tensor([st, st, sn], dtype=torch.float64)).expand(len(pts), 3)
     labels = torch.cat([torch.zeros(len(ground), dtype=torch.long), torch.ones(len(wall), dtype=torch.long)])
-    return pts, _matrix_to_quat(R), log_scales.clone(), rgb, labels
+    return pts, rotmat_to_quat(R), log_scales.clone(), rgb, labels
 
 
 @dataclass(frozen=True)

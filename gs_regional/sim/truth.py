@@ -16,7 +16,7 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.renderers.sh import rgb_to_sh
+from gs_regional.utils.sh import rgb_to_sh
 
 
 @dataclass

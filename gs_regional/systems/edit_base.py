@@ -10,13 +10,13 @@ from typing import Dict, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.initialize import dilate
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.registry import find
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems.base import BaseSystem
+from gs_regional.utils.image import dilate
 
 
 @dataclass

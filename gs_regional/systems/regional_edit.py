@@ -8,10 +8,10 @@ from typing import List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.initialize import InitConfig, dilate, new_gaussians_from_depth
+from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
 from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
-from gs_regional.guidance.base import gaussian_blur
+from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems.edit_base import EditSystemBase

@@ -32,3 +32,9 @@ class BaseModule(nn.Module):
     def __init__(self, cfg: Any = None, where: str = "") -> None:
         super().__init__()
         self.cfg = parse_structured(self.Config, cfg, where=where or type(self).__name__)
+
+
+def component_name(obj: Any) -> str:
+    """The name a component is registered under (its class name when it is not registered), for
+    error messages."""
+    return type(obj).__dict__.get("registered_name", type(obj).__name__)

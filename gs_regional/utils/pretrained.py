@@ -1,15 +1,14 @@
 """Loading pretrained models (diffusers / transformers) from a hub id or a local folder, and the
-small tensor helpers their wrappers share (instructpix2pix, depth-anything, CLIP metrics)."""
+small helpers their wrappers share (instructpix2pix, depth-anything, CLIP metrics)."""
 from __future__ import annotations
 
 import os
-from typing import Callable, Dict, Iterator, Sequence, Tuple, TypeVar
+from typing import Callable, Collection, Dict, Iterator, Optional, Sequence, Tuple, TypeVar
 
 import torch
-import torch.nn.functional as F
 
 T = TypeVar("T")
-
+M = TypeVar("M", bound=torch.nn.Module)
 
 
 class PretrainedLoadError(OSError):
@@ -91,20 +90,90 @@ def load_pretrained(what: str, pretrained: str, local_files_only: bool, fn: Call
         raise PretrainedLoadError(f"cannot load {what} from '{pretrained}': {e}{hint}") from e
 
 
-def to_nchw(images: torch.Tensor, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    return images.permute(0, 3, 1, 2).to(device=device, dtype=torch.float32).contiguous().to(dtype)
-
-
-def resize(x: torch.Tensor, size: Tuple[int, int], mode: str = "bilinear") -> torch.Tensor:
-    """Resize (B, C, H, W); antialiased when shrinking (as PIL does), a no-op at the same size."""
-    if tuple(x.shape[-2:]) == tuple(size):
-        return x
-    shrink = size[0] < x.shape[-2] or size[1] < x.shape[-1]
-    if mode in ("bilinear", "bicubic"):
-        return F.interpolate(x, size=size, mode=mode, align_corners=False, antialias=shrink)
-    return F.interpolate(x, size=size, mode=mode)
-
-
 def batches(n: int, size: int) -> Iterator[slice]:
     for i in range(0, n, size):
         yield slice(i, min(i + size, n))
+
+
+class Pretrained:
+    """One pretrained model (hub id or local folder) and where it runs.
+
+    The preamble every wrapper needs, in one place: `device` and `dtype` are resolved once
+    ("auto" as `resolve_device` / `resolve_dtype` say), `require` checks a local folder before
+    loading so that a missing file is named, and `load` runs one from_pretrained call whose
+    failure names the model and the part (`load_pretrained`).
+    """
+
+    def __init__(
+        self,
+        what: str,
+        pretrained: str,
+        device: str = "auto",
+        dtype: str = "auto",
+        local_files_only: bool = False,
+        max_batch_size: Optional[int] = None,
+    ) -> None:
+        if max_batch_size is not None and max_batch_size < 1:
+            raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        self.what = what
+        self.pretrained = pretrained
+        self.local_files_only = local_files_only
+        self.device = resolve_device(device)
+        self.dtype = resolve_dtype(dtype, self.device)
+
+    def require(self, required: Dict[str, Sequence[str]], part: str = "") -> bool:
+        """`check_local_folder` for this model; `part` is named in the error."""
+        return check_local_folder(self.pretrained, required, f"{self.what} ({part})" if part else self.what)
+
+    def load(self, part: str, from_pretrained: Callable[..., T], **kwargs) -> T:
+        """`from_pretrained(pretrained, local_files_only=..., **kwargs)`; a failure names `part`."""
+        p, offline = self.pretrained, self.local_files_only
+        return load_pretrained(part, p, offline, lambda: from_pretrained(p, local_files_only=offline, **kwargs))
+
+    def load_frozen(self, part: str, from_pretrained: Callable[..., M], device=None, **kwargs) -> M:
+        """A module loaded by `load`, without gradients, in eval mode, on `device` (default: ours)."""
+        module = self.load(part, from_pretrained, **kwargs)
+        return module.requires_grad_(False).eval().to(self.device if device is None else device)
+
+    def load_config(self, accepted: Collection[str], kind: str):
+        """The model's config.json (transformers AutoConfig); its model_type must be in `accepted`."""
+        from transformers import AutoConfig
+
+        self.require({"": ("config.json",)})
+        config = self.load(f"the {kind} config", AutoConfig.from_pretrained)
+        model_type = getattr(config, "model_type", None)
+        if model_type not in accepted:
+            archs = ", ".join(getattr(config, "architectures", None) or []) or "?"
+            msg = f"{self.what}: '{self.pretrained}' holds a '{model_type}' model ({archs}), not a {kind} model"
+            if len(accepted) > 1:
+                msg += f"; expected one of {', '.join(accepted)}"
+            raise PretrainedLoadError(msg)
+        return config
+
+
+# ------------------------------------------------------------------ image-processor settings
+# Vision wrappers read a checkpoint's image-processor config and preprocess in torch on the batch.
+
+_PIL_RESAMPLE = {0: "nearest", 2: "bilinear", 3: "bicubic"}  # others (lanczos, box, ...) -> bicubic
+
+
+def processor_size(size, key: str) -> Optional[int]:
+    """A field of a processor size: a transformers SizeDict, a plain dict or a bare int (the
+    shortest edge); None when absent."""
+    if size is None:
+        return None
+    if isinstance(size, int):
+        return size if key == "shortest_edge" else None
+    return size.get(key) if isinstance(size, dict) else getattr(size, key, None)
+
+
+def processor_resample(proc) -> str:
+    """The torch interpolation mode of the processor's PIL resample filter."""
+    return _PIL_RESAMPLE.get(int(getattr(proc, "resample", 3) or 3), "bicubic")
+
+
+def processor_normalization(proc, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The processor's mean and std as (1, 3, 1, 1) float32 tensors on `device`."""
+    mean = torch.tensor(list(proc.image_mean), dtype=torch.float32, device=device).view(1, 3, 1, 1)
+    std = torch.tensor(list(proc.image_std), dtype=torch.float32, device=device).view(1, 3, 1, 1)
+    return mean, std

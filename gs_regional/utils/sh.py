@@ -1,4 +1,5 @@
-"""Real spherical harmonics of degree 0-3 with the constants used by 3DGS and gsplat.
+"""Real spherical harmonics of degree 0-3 with the constants used by 3DGS and gsplat: the one home
+of `SH_C0`, the SH basis, view-dependent colour and the rgb <-> DC-coefficient conversion.
 
 A Gaussian's colour seen from a camera is ``max(SH(dir) + 0.5, 0)`` where ``dir`` is the unit vector
 from the camera centre to the Gaussian's mean and SH sums the coefficients (..., K, C) against the
