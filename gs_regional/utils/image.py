@@ -19,7 +19,7 @@ def check_images(images: torch.Tensor, what: str = "images") -> torch.Tensor:
         raise ValueError(f"{what} must have shape (B, H, W, 3), got {tuple(images.shape)}")
     if not images.is_floating_point():
         raise TypeError(f"{what} must be float in [0, 1], got dtype {images.dtype}")
-    lo, hi = float(images.min()), float(images.max())
+    lo, hi = (float(v) for v in torch.aminmax(images.detach()))
     if lo < -1e-3 or hi > 1 + 1e-3:
         raise ValueError(f"{what} must be in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
     return images.clamp(0, 1)
