@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import torch
 
@@ -40,9 +40,12 @@ def _bytes_to_unicode() -> Dict[int, str]:
     return dict(zip(bs, map(chr, cs)))
 
 
-def tiny_clip_vocab() -> Tuple[Dict[str, int], List[str]]:
+def tiny_clip_vocab(size: Optional[int] = None) -> Tuple[Dict[str, int], List[str]]:
     """A CLIP-style BPE vocabulary: the 256 byte symbols, each also with the end-of-word
-    marker, the merges that spell out `_WORDS`, then the bos/eos tokens (as in CLIP, last)."""
+    marker, the merges that spell out `_WORDS`, then the bos/eos tokens (as in CLIP, last).
+
+    `size` pads it with never-produced filler tokens to that many entries, so that the ids match
+    a real CLIP tokenizer's layout (49408 entries, bos 49406, eos 49407)."""
     alphabet = list(_bytes_to_unicode().values())
     tokens = alphabet + [c + "</w>" for c in alphabet]
     merges: List[str] = []
@@ -58,12 +61,16 @@ def tiny_clip_vocab() -> Tuple[Dict[str, int], List[str]]:
                 seen.add(merged)
                 tokens.append(merged)
             symbols = [merged] + symbols[2:]
+    if size is not None:
+        if size < len(tokens) + 2:
+            raise ValueError(f"a CLIP vocabulary needs at least {len(tokens) + 2} entries, got size={size}")
+        tokens += [f"<|filler_{i}|>" for i in range(size - len(tokens) - 2)]
     tokens += [BOS, EOS]
     return {t: i for i, t in enumerate(tokens)}, merges
 
 
-def _write_vocab_files(folder: str) -> Tuple[Dict[str, int], List[str]]:
-    vocab, merges = tiny_clip_vocab()
+def _write_vocab_files(folder: str, size: Optional[int] = None) -> Tuple[Dict[str, int], List[str]]:
+    vocab, merges = tiny_clip_vocab(size)
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "vocab.json"), "w", encoding="utf-8") as f:
         json.dump(vocab, f, ensure_ascii=False)
@@ -72,11 +79,11 @@ def _write_vocab_files(folder: str) -> Tuple[Dict[str, int], List[str]]:
     return vocab, merges
 
 
-def _save_tokenizer(folder: str):
+def save_tokenizer(folder: str, vocab_size: Optional[int] = None):
     """Write vocab.json/merges.txt, then let CLIPTokenizer read them and save its full layout."""
     from transformers import CLIPTokenizer
 
-    _write_vocab_files(folder)
+    _write_vocab_files(folder, vocab_size)
     tok = CLIPTokenizer.from_pretrained(folder, model_max_length=MAX_TEXT_LENGTH)
     tok.save_pretrained(folder)
     return tok
@@ -105,7 +112,7 @@ def build_tiny_ip2p(folder: str, seed: int = 0) -> str:
     from transformers import CLIPTextModel
 
     os.makedirs(folder, exist_ok=True)
-    tok = _save_tokenizer(os.path.join(folder, "tokenizer"))
+    tok = save_tokenizer(os.path.join(folder, "tokenizer"))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         unet = UNet2DConditionModel(
@@ -145,19 +152,24 @@ def build_tiny_ip2p(folder: str, seed: int = 0) -> str:
         steps_offset=1,
         prediction_type="epsilon",
     )
+    return save_ip2p_folder(folder, unet, vae, text_encoder, scheduler)
+
+
+def save_ip2p_folder(folder: str, unet, vae, text_encoder, scheduler) -> str:
+    """Save the components (the tokenizer is already in folder/tokenizer) and model_index.json."""
+    import diffusers
+
     unet.save_pretrained(os.path.join(folder, "unet"))
     vae.save_pretrained(os.path.join(folder, "vae"))
     text_encoder.save_pretrained(os.path.join(folder, "text_encoder"))
     scheduler.save_pretrained(os.path.join(folder, "scheduler"))
-    import diffusers
-
     index = {  # what diffusers' StableDiffusionInstructPix2PixPipeline.save_pretrained writes
         "_class_name": "StableDiffusionInstructPix2PixPipeline",
         "_diffusers_version": diffusers.__version__,
         "feature_extractor": [None, None],
         "requires_safety_checker": False,
         "safety_checker": [None, None],
-        "scheduler": ["diffusers", "DDIMScheduler"],
+        "scheduler": ["diffusers", type(scheduler).__name__],
         "text_encoder": ["transformers", "CLIPTextModel"],
         "tokenizer": ["transformers", "CLIPTokenizer"],
         "unet": ["diffusers", "UNet2DConditionModel"],
@@ -170,7 +182,7 @@ def build_tiny_ip2p(folder: str, seed: int = 0) -> str:
 
 def build_tiny_depth_anything(folder: str, seed: int = 0) -> str:
     """A Depth Anything (V2 layout) folder: small DINOv2 backbone (patch 14) and DPT head."""
-    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
+    from transformers import DepthAnythingConfig, Dinov2Config
 
     backbone = Dinov2Config(
         hidden_size=32,
@@ -192,6 +204,14 @@ def build_tiny_depth_anything(folder: str, seed: int = 0) -> str:
         head_hidden_size=8,
         depth_estimation_type="relative",
     )
+    return save_depth_anything_folder(folder, config, seed, input_size=56)
+
+
+def save_depth_anything_folder(folder: str, config, seed: int, input_size: int) -> str:
+    """A random DepthAnythingForDepthEstimation of `config` and a processor config resizing to
+    `input_size` (the fields of depth-anything/Depth-Anything-V2-Small-hf), saved in `folder`."""
+    from transformers import DepthAnythingForDepthEstimation
+
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed + 3)
         model = DepthAnythingForDepthEstimation(config)
@@ -203,7 +223,7 @@ def build_tiny_depth_anything(folder: str, seed: int = 0) -> str:
                 m.reset_parameters()
         torch.nn.init.constant_(model.head.conv3.bias, 1.0)
     model.save_pretrained(folder)
-    processor = {  # the fields of depth-anything/Depth-Anything-V2-Small-hf, at a tiny size
+    processor = {
         "do_normalize": True,
         "do_pad": False,
         "do_rescale": True,
@@ -215,7 +235,7 @@ def build_tiny_depth_anything(folder: str, seed: int = 0) -> str:
         "keep_aspect_ratio": True,
         "resample": 3,
         "rescale_factor": 1 / 255,
-        "size": {"height": 56, "width": 56},
+        "size": {"height": input_size, "width": input_size},
         "size_divisor": None,
     }
     with open(os.path.join(folder, "preprocessor_config.json"), "w") as f:
@@ -227,7 +247,7 @@ def build_tiny_clip(folder: str, seed: int = 0) -> str:
     """A CLIPModel folder (openai/clip-vit-* layout) with tokenizer and image-processor config."""
     from transformers import CLIPConfig, CLIPModel, CLIPVisionConfig
 
-    tok = _save_tokenizer(folder)
+    tok = save_tokenizer(folder)
     text = _text_config(len(tok), tok.bos_token_id, tok.eos_token_id)
     vision = CLIPVisionConfig(
         hidden_size=32, intermediate_size=37, num_hidden_layers=2, num_attention_heads=4, image_size=32, patch_size=8
