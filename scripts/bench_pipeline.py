@@ -14,7 +14,8 @@ under ~/.cache/gs_regional/priors, see gs_regional/testing/real_size_models.py):
 
 The scene is the synthetic figure (written out as cameras.json + an INRIA PLY, so the runs read
 it exactly as a user's scene) or --ply with --data; --gaussians N resamples it to N Gaussians.
-Every scene is written with SH degree 3, as trained scenes have.
+Every scene is written with SH degree 3, as trained scenes have. Unset budget options take the
+budget of --models (BUDGETS: real-size = the paper's schedule, tiny = the CPU demo's).
 
 Steps, each in its own process (so that peak CPU RSS and peak CUDA memory are per step):
   load           construct both priors from their folders, one UNet call and one depth call
@@ -44,7 +45,15 @@ if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
 SCHEMA_VERSION = 1
-PAPER_SCHEDULE = dict(cycles=3, t_schedule=[750, 500, 250], m=20)
+# Budgets: real-size = the paper's schedule (configs/edit.yaml: 3 cycles from t 750/500/250, m = 20,
+# 500 steps per cycle, 24 localization views) against in2n's 1500 steps; tiny = the CPU demo's
+# (configs/demo.yaml, configs/in2n.yaml), minutes on a CPU.
+BUDGETS = {
+    "real-size": dict(resolution=512, cycles=3, t_schedule=[750, 500, 250], m=20, iterations=500, max_views=24,
+                      in2n_steps=1500, turntable_frames=48, densify_every=100),
+    "tiny": dict(resolution=64, cycles=3, t_schedule=[750, 500, 250], m=8, iterations=100, max_views=12,
+                 in2n_steps=300, turntable_frames=12, densify_every=50),
+}
 
 
 # ----------------------------------------------------------------------------------- child steps
@@ -344,26 +353,28 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--ply", default=None, help="a trained scene (INRIA PLY); needs --data")
     ap.add_argument("--data", default=None, help="its cameras: scene folder or camera file")
     ap.add_argument("--gaussians", type=int, default=0, help="resample the scene to this many Gaussians")
-    ap.add_argument("--resolution", type=int, default=None, help="longest image side (default 512 real-size, 64 tiny)")
+    ap.add_argument("--resolution", type=int, default=None, help="longest image side")
     ap.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: cuda when available)")
     ap.add_argument("--fp16", action="store_true", help="run the priors in float16 (default float32)")
     ap.add_argument("--renderer", default=None, help="system.renderer_type (default: configs/edit.yaml's)")
     ap.add_argument("--prompt", default="give him a mustache")
-    ap.add_argument("--cycles", type=int, default=PAPER_SCHEDULE["cycles"])
-    ap.add_argument("--t-schedule", type=int, nargs="+", default=PAPER_SCHEDULE["t_schedule"])
-    ap.add_argument("--m", type=int, default=PAPER_SCHEDULE["m"], help="views edited per cycle around the frontal one")
-    ap.add_argument("--iterations", type=int, default=None, help="steps per cycle (default: configs/edit.yaml's)")
-    ap.add_argument("--max-views", type=int, default=None, help="localization views (default: configs/edit.yaml's)")
+    ap.add_argument("--cycles", type=int, default=None)
+    ap.add_argument("--t-schedule", type=int, nargs="+", default=None, help="start timestep of each cycle")
+    ap.add_argument("--m", type=int, default=None, help="views edited per cycle around the frontal one")
+    ap.add_argument("--iterations", type=int, default=None, help="steps per cycle")
+    ap.add_argument("--max-views", type=int, default=None, help="localization views")
+    ap.add_argument("--densify-every", type=int, default=None, help="refinement steps between densifications")
     ap.add_argument("--ddim-steps", type=int, default=20, help="DDIM steps of a full edit")
-    ap.add_argument("--in2n-steps", type=int, default=1500, help="in2n training steps (0 skips the baseline)")
+    ap.add_argument("--in2n-steps", type=int, default=None, help="in2n training steps (0 skips the baseline)")
     ap.add_argument("--edit-every", type=int, default=10, help="in2n: steps between dataset edits")
-    ap.add_argument("--turntable-frames", type=int, default=48)
+    ap.add_argument("--turntable-frames", type=int, default=None)
     ap.add_argument("--load-only", action="store_true", help="only the load step (load both priors, one call each)")
     args = ap.parse_args(argv)
     if bool(args.ply) != bool(args.data):
         ap.error("--ply and --data go together (a trained scene and its cameras)")
-    if args.resolution is None:
-        args.resolution = 512 if args.models == "real-size" else 64
+    for key, value in BUDGETS[args.models].items():  # unset options take the budget of --models
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     if args.device is None:
         import torch
 
@@ -409,14 +420,12 @@ def main(argv=None) -> dict:
         f"system.depth.pretrained={priors['depth_anything']}", f"system.depth.dtype={report['dtype']}",
         f"system.depth.device={args.device}", "system.depth.local_files_only=true",
         f"system.refine.cycles={args.cycles}", f"system.refine.t_schedule=[{','.join(map(str, args.t_schedule))}]",
-        f"system.refine.m={args.m}",
+        f"system.refine.m={args.m}", f"system.refine.iterations_per_cycle={args.iterations}",
+        f"system.localization.max_views={args.max_views}", f"system.refine.densify_every={args.densify_every}",
     ]
-    if args.iterations is not None:
-        regional.append(f"system.refine.iterations_per_cycle={args.iterations}")
-    if args.max_views is not None:
-        regional.append(f"system.localization.max_views={args.max_views}")
     report["schedule"] = {"cycles": args.cycles, "t_schedule": args.t_schedule, "m": args.m,
                           "iterations_per_cycle": args.iterations, "localization_views": args.max_views,
+                          "densify_every": args.densify_every,
                           "ddim_steps": args.ddim_steps, "in2n_steps": args.in2n_steps, "in2n_edit_every": args.edit_every}
     runs = {"regional-edit": (os.path.join(ROOT, "configs", "edit.yaml"), regional)}
     if args.in2n_steps > 0:
