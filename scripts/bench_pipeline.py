@@ -209,7 +209,7 @@ def prepare_scene(args, folder: str) -> dict:
     """Write the scene the runs read: (cameras file, PLY, data.downscale) and a description."""
     from gs_regional.api import load_cameras
     from gs_regional.data.loaders import save_cameras_json
-    from gs_regional.data.synthetic import make_cameras, make_scene
+    from gs_regional.sim.scene import make_cameras, make_scene
     from gs_regional.geometry.gaussian_model import GaussianModel
 
     os.makedirs(folder, exist_ok=True)
