@@ -173,7 +173,8 @@ def resample_gaussians(model, n: int, seed: int = 0):
     covered about as densely as before. Vectorised (1M Gaussians in seconds)."""
     import torch
 
-    from gs_regional.geometry.gaussian_model import GaussianModel, quat_to_rotmat
+    from gs_regional.geometry.gaussian_model import GaussianModel
+    from gs_regional.utils.rotations import quat_to_rotmat
 
     src = model.num_gaussians
     gen = torch.Generator().manual_seed(seed)
