@@ -5,7 +5,7 @@
     python launch.py --config configs/edit.yaml --test resume=outputs/<name>/<trial>/ckpts/last.ckpt
 
 Plugins in custom/ beside this file are imported before the config is read. See
-gs_regional/launcher.py for what happens and where the outputs go.
+gs_regional/launch/ for what happens and where the outputs go.
 """
 import os
 import sys
@@ -18,6 +18,6 @@ if __name__ == "__main__":
     here = os.path.dirname(os.path.abspath(__file__))
     if here not in sys.path:
         sys.path.insert(0, here)
-    from gs_regional.launcher import main
+    from gs_regional.launch import main
 
     sys.exit(main(sys.argv[1:], custom_dir=os.path.join(here, "custom")))

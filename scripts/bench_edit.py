@@ -22,7 +22,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from gs_regional.launcher import main  # noqa: E402
+from gs_regional.launch import main  # noqa: E402
 
 
 def run(out: str, name: str, config: str, *overrides: str) -> dict:

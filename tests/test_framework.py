@@ -336,7 +336,7 @@ def test_rng_state_roundtrip():
 
 # ----- the example plugin --------------------------------------------------------------------
 def test_example_plugin_loads_and_desaturates_the_colourful_region():
-    from gs_regional.launcher import load_plugins
+    from gs_regional.launch import load_plugins
 
     results = load_plugins(REPO / "custom")
     assert results.get("custom/example_plugin.py", "missing") is None, results

@@ -13,8 +13,8 @@ import pytest
 import torch
 import yaml
 
-from gs_regional import launcher
-from gs_regional.launcher import main
+from gs_regional.launch import load_plugins, main
+from gs_regional.registry import note_import_error
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -253,7 +253,7 @@ def test_broken_plugin_is_reported_and_the_good_one_still_loads(setup_dir, tmp_p
     )
     (custom / "notes.txt").write_text("not a plugin")
     with caplog.at_level(logging.ERROR, logger="gs_regional"):
-        results = launcher.load_plugins(custom)
+        results = load_plugins(custom)
     assert results == {
         "plugins/a_broken.py": "ModuleNotFoundError: No module named 'no_such_module_xyz' (plugins/a_broken.py, line 2)",
         "plugins/b_good/": None,
@@ -269,10 +269,12 @@ def test_broken_plugin_is_reported_and_the_good_one_still_loads(setup_dir, tmp_p
     rc = main(["--config", str(cfg), "--train", "--custom-dir", str(custom), f"exp_root_dir={tmp_path / 'out'}"])
     err = capsys.readouterr().err
     assert rc == 2
-    line = [l for l in err.splitlines() if l.startswith("error:")][0]
+    line = err.strip().splitlines()[-1]  # the fatal line comes last, after the logged plugin error
+    assert line.startswith("error:")
     assert "unknown systems type 'broken-thing'" in line and "a_broken.py" in line and "no_such_module_xyz" in line
     assert "Traceback" not in err
     assert not os.path.exists(tmp_path / "out")  # no trial dir for a run that never started
+    note_import_error("plugin plugins/a_broken.py", None)  # registry state is global: leave none behind
 
 
 def test_config_errors_exit_2_with_one_line(setup_dir, capsys):

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from conftest import shared_path
 from trial_helpers import metrics_of, ply_arrays, trial_of
-from gs_regional.launcher import main
+from gs_regional.launch import main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = str(ROOT / "configs" / "reconstruct.yaml")

@@ -15,7 +15,7 @@ from trial_helpers import metrics_of, ply_arrays, trial_of
 from gs_regional.sim.scene import make_cameras, make_edit
 from gs_regional.edit.localize import localize_gaussians, mask_metrics
 from gs_regional.edit.views import spread_subset
-from gs_regional.launcher import main
+from gs_regional.launch import main
 from gs_regional.registry import find
 from gs_regional.systems.regional_edit import LocalizeConfig
 
@@ -211,7 +211,7 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
 def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
     trial = launch(tmp_path, "empty", "configs/demo.yaml", *SMALL,
                    "system.localization.gamma=0.999", "system.localization.mask_threshold=0.999")
-    assert "no Gaussian was selected" in capsys.readouterr().out
+    assert "warning: localize: no Gaussian was selected" in capsys.readouterr().err
     m = metrics_of(trial)
     assert m["stopped"] == "empty selection" and m["count_selected"] == 0
     edited = ply_arrays(Path(trial) / "save" / "edited.ply")
@@ -226,7 +226,7 @@ def test_gamma_zero_is_a_global_edit(tmp_path, capsys):
                    "system.refine.m=3")
     m = metrics_of(trial)
     assert m["count_selected"] == m["gaussians_before"] and m["count_added_init"] == 0
-    assert "a global edit" in capsys.readouterr().out
+    assert "a global edit" in capsys.readouterr().err
 
 
 def test_export_writes_the_checkpointed_scene(runs, capsys):

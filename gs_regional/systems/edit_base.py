@@ -3,6 +3,7 @@ finetuning steps, evaluation and the output files (DESIGN.md §1, §3.4)."""
 from __future__ import annotations
 
 import copy
+import logging
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Dict, Optional
@@ -17,6 +18,8 @@ from gs_regional.registry import find
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems.base import BaseSystem
 from gs_regional.utils.image import dilate
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -191,7 +194,7 @@ class EditSystemBase(BaseSystem):
         """`launch.py --export resume=<ckpt>`: write the scene of that checkpoint as a PLY."""
         path = self.save_path(f"export_step{self.global_step}.ply")
         self.geometry.save_ply(str(path))
-        print(f"export: {self.geometry.num_gaussians} Gaussians written to {path}")
+        log.info("export: %d Gaussians written to %s", self.geometry.num_gaussians, path)
 
     @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:

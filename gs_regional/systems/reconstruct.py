@@ -224,9 +224,10 @@ class Reconstruct(BaseSystem):
             "seconds": round(self.elapsed() if seconds is None else seconds, 3),
         }
         self.write_metrics_json(metrics)
-        print(
-            f"reconstruct: {'held-out' if scene.test_indices else 'training-view'} PSNR {metrics['psnr_test']:.2f} dB, "
-            f"SSIM {metrics['ssim_test']:.4f}, {g.num_gaussians} Gaussians, {metrics['seconds']:.0f} s"
+        log.info(
+            "reconstruct: %s PSNR %.2f dB, SSIM %.4f, %d Gaussians, %.0f s",
+            "held-out" if scene.test_indices else "training-view", metrics["psnr_test"], metrics["ssim_test"],
+            g.num_gaussians, metrics["seconds"],
         )
         return metrics
 

@@ -1,6 +1,7 @@
 """`regional-edit`: localize → initialize → conditional sequential refinement (DESIGN.md §3)."""
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import List, Optional
@@ -15,6 +16,8 @@ from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems.edit_base import EditSystemBase
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -160,7 +163,7 @@ class RegionalEdit(EditSystemBase):
         self.save_image("initialize/first_view_source.png", unedited)
         self.save_image("initialize/first_view_edited.png", edited)
         if cfg.initialize and bool(g.mask.all()):
-            print("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
+            log.warning("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
             self.counts["added_init"] = 0
         elif cfg.initialize:
             out = self.render_view(v)
@@ -186,11 +189,11 @@ class RegionalEdit(EditSystemBase):
             self.save_image("initialize/depth_edited.png", _normalize(disp[1]))
             self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
             self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
-            print(
-                f"initialize: added {n} Gaussians from the depth of view {v} "
-                f"({report['skipped_unchanged']} region pixels unchanged, {report['skipped_by_stride']} skipped by "
-                f"stride, {report.get('skipped_far_from_region', 0)} too far from the region, "
-                f"{report['skipped_by_cap']} over the cap of {cfg.init.max_new})"
+            log.info(
+                "initialize: added %d Gaussians from the depth of view %d (%d region pixels unchanged, %d skipped "
+                "by stride, %d too far from the region, %d over the cap of %d)", n, v, report["skipped_unchanged"],
+                report["skipped_by_stride"], report.get("skipped_far_from_region", 0), report["skipped_by_cap"],
+                cfg.init.max_new,
             )
         else:
             self.counts["added_init"] = 0
@@ -259,7 +262,7 @@ class RegionalEdit(EditSystemBase):
         if self.phase == "localize":
             self.run_localize()
             if not bool(self.geometry.mask.any()):
-                print(
+                log.warning(
                     "localize: no Gaussian was selected for the prompt; nothing to edit. Try a lower "
                     "system.localization.gamma or system.localization.mask_threshold. The source scene is "
                     "written out unchanged."

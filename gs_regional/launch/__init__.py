@@ -1,0 +1,23 @@
+"""What `launch.py` does (threestudio-style), importable so that tests and scripts run it in-process.
+
+    python launch.py --config X.yaml (--train|--validate|--test|--export) [--gpu N] [key=value ...]
+
+1. import every module and package under `custom/` (plugins register components)   plugins.py
+2. read the YAML, apply the overrides                                                run.py
+3. seed, build the datamodule (`data_type`) and the system (`system_type`), and read
+   the scene: bad config or input files stop here, before any trial dir exists      run.py
+4. make the trial directory `<exp_root_dir>/<name>/<tag>@<timestamp>` (or reuse the
+   one of a `resume=<trial>/ckpts/last.ckpt`) with configs/parsed.yaml,
+   configs/raw.yaml and cmd.txt                                                      trial.py
+5. run a Lightning Trainer (last.ckpt in ckpts/, CSV logs in csv_logs/, one progress
+   bar named after the system's stage)                                               callbacks.py
+6. print a summary: what ran, seconds per stage, Gaussians, key metrics, output paths summary.py
+
+The console is quiet by default (`--verbose` shows everything; logs.py). Mistakes in the config,
+the command line or the input files end with one line `error: ...` and exit code 2 (`--debug`
+shows the traceback; errors.py, cli.py).
+"""
+from gs_regional.launch.cli import build_parser, main
+from gs_regional.launch.plugins import load_plugins
+
+__all__ = ["build_parser", "main", "load_plugins"]

@@ -1,0 +1,66 @@
+"""The command line of `launch.py`: arguments, logging, and mistakes turned into one line
+`error: ...` with exit code 2 (`--debug` shows the traceback instead)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any, Optional, Sequence
+
+from gs_regional.launch.errors import is_user_error
+from gs_regional.launch.logs import setup_logging
+
+MODES = ("train", "validate", "test", "export")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="launch.py",
+        description="Run a gs_regional experiment: python launch.py --config X.yaml --train [key=value ...]",
+    )
+    p.add_argument("--config", required=True, help="YAML experiment config")
+    mode = p.add_mutually_exclusive_group(required=True)
+    helps = {
+        "train": "train (resume=<ckpt> continues a run)",
+        "validate": "run the validation loop (on resume=<ckpt>)",
+        "test": "run the test loop (on resume=<ckpt>)",
+        "export": "load resume=<ckpt> and call the system's on_export()",
+    }
+    for m in MODES:
+        mode.add_argument(f"--{m}", action="store_true", help=helps[m])
+    p.add_argument("--gpu", default=None, help="CUDA device index (e.g. 0); without it the run uses the CPU")
+    p.add_argument("--custom-dir", default=None, help="plugin folder (default: custom/ beside launch.py)")
+    p.add_argument("--verbose", action="store_true",
+                   help="show every log line, Lightning's messages and model summary, and all warnings")
+    p.add_argument("--debug", action="store_true", help="--verbose, and tracebacks instead of one-line errors")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None, custom_dir: Any = None) -> int:
+    """Run launch.py with `argv` (default: sys.argv[1:]); returns the exit code.
+
+    `custom_dir` is the default plugin folder (launch.py passes the one beside itself).
+    Mistakes in the config, command line or input files print `error: ...` and return 2;
+    other errors propagate with their traceback.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args, extra = parser.parse_known_args(argv)
+    except SystemExit as e:  # argparse already printed the usage and the error
+        return int(e.code or 0)
+    bad = [x for x in extra if "=" not in x]
+    if bad:
+        parser.print_usage(sys.stderr)
+        sys.stderr.write(f"error: unrecognized arguments: {' '.join(bad)} (overrides are key=value)\n")
+        return 2
+    from gs_regional.launch.run import run  # imports Lightning: after the quick argument checks
+
+    setup_logging(verbose=args.verbose or args.debug)  # after Lightning's import sets its own levels
+
+    try:
+        return run(args, extra, argv, custom_dir)
+    except Exception as e:
+        if args.debug or not is_user_error(e):
+            raise
+        sys.stderr.write(f"error: {e}\n")
+        return 2

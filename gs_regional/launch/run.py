@@ -1,0 +1,205 @@
+"""One experiment run: config → datamodule and system → trial dir → Lightning Trainer → summary."""
+from __future__ import annotations
+
+import argparse
+import inspect
+import logging
+import os
+import shlex
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import lightning
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
+
+from gs_regional.config import ConfigError, load_config
+from gs_regional.launch.cli import MODES
+from gs_regional.launch.errors import is_user_error
+from gs_regional.launch.logs import filter_warnings
+from gs_regional.launch.plugins import default_custom_dir, load_plugins
+from gs_regional.launch.summary import RunInfo, print_summary
+from gs_regional.launch.trial import now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
+from gs_regional.registry import RegistryError, find, load_builtins
+
+log = logging.getLogger(__name__)
+
+# The Lightning stage each mode runs (the argument of DataModule.setup).
+STAGES = {"train": "fit", "validate": "validate", "test": "test", "export": "predict"}
+
+
+def _check_keys(section: str, given: Dict[str, Any], target: Any, reserved: Sequence[str] = ()) -> None:
+    allowed = set(inspect.signature(target).parameters) - {"self", "args", "kwargs"}
+    for key in given:
+        if key in reserved:
+            raise ConfigError(f"config key '{section}.{key}' is set by launch.py and cannot be configured")
+        if key not in allowed:
+            raise ConfigError(
+                f"unknown config key '{section}.{key}': not an argument of {target.__qualname__}; "
+                f"allowed keys: {', '.join(sorted(allowed - set(reserved)))}"
+            )
+
+
+def _container(node: Any, section: str) -> Dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    if node is None:
+        return {}
+    value = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+    if not isinstance(value, dict):
+        raise ConfigError(f"config section '{section}' must be a mapping, got {value!r}")
+    return dict(value)
+
+
+def trainer_kwargs(cfg: Any, system: Any, mode: str, gpu: Optional[str], verbose: bool = False) -> Dict[str, Any]:
+    """Trainer arguments from the `trainer:` section plus launch.py's defaults."""
+    import torch
+
+    kw = _container(cfg.trainer, "trainer")
+    _check_keys("trainer", kw, lightning.Trainer.__init__, reserved=("callbacks", "default_root_dir"))
+    if mode == "train" and kw.get("max_steps") in (None, -1):
+        steps = getattr(system, "total_steps", None)
+        if steps is not None:
+            kw["max_steps"] = int(steps)
+        elif kw.get("max_epochs") is None:
+            raise ConfigError(
+                "how long to train is not set: give trainer.max_steps (or system.max_steps, or trainer.max_epochs)"
+            )
+    if gpu is not None:
+        try:
+            gpu_ids = [int(g) for g in str(gpu).split(",") if g.strip()]
+        except ValueError:
+            gpu_ids = []
+        if not gpu_ids or min(gpu_ids) < 0:
+            raise ConfigError(f"--gpu must be a CUDA device index such as 0 (or a list such as 0,1), got '{gpu}'")
+    if "accelerator" not in kw:
+        if gpu is not None and torch.cuda.is_available():
+            kw["accelerator"] = "gpu"
+            kw.setdefault("devices", gpu_ids)
+        else:
+            if gpu is not None:
+                log.warning("--gpu %s given but CUDA is not available: running on the CPU", gpu)
+            kw["accelerator"] = "cpu"
+    kw.setdefault("devices", 1)
+    kw.setdefault("log_every_n_steps", 10)
+    kw.setdefault("num_sanity_val_steps", 0)
+    kw.setdefault("enable_checkpointing", True)
+    kw.setdefault("enable_model_summary", verbose)  # a table of one GaussianModel says little
+    return kw
+
+
+def checkpoint_callback(cfg: Any, trial: Path):
+    from gs_regional.launch.callbacks import TrialCheckpoint
+
+    ck = checkpoint_settings(cfg)
+    ck.setdefault("save_last", True)
+    ck.setdefault("save_top_k", 0)  # only last.ckpt unless asked for more
+    ck.setdefault("enable_version_counter", False)  # resuming rewrites last.ckpt, never last-v1.ckpt
+    try:
+        return TrialCheckpoint(dirpath=str(trial / "ckpts"), **ck)
+    except Exception as e:
+        raise ConfigError(f"bad checkpoint settings: {e}") from None
+
+
+def checkpoint_settings(cfg: Any) -> Dict[str, Any]:
+    """The `checkpoint:` section, checked against ModelCheckpoint's arguments."""
+    ck = _container(cfg.checkpoint, "checkpoint")
+    _check_keys("checkpoint", ck, ModelCheckpoint.__init__, reserved=("dirpath",))
+    return ck
+
+
+def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None) -> int:
+    started, started_at = time.perf_counter(), time.time()
+    verbose = bool(args.verbose or args.debug)
+    mode = next(m for m in MODES if getattr(args, m))
+    # Built-ins first, so that a plugin reusing a built-in name fails in its own import.
+    load_builtins()
+    load_plugins(args.custom_dir or custom_dir or default_custom_dir(), debug=args.debug)
+
+    cfg = load_config(args.config, overrides)
+    resume = cfg.resume
+    if resume and not os.path.isfile(resume):
+        raise ConfigError(f"resume checkpoint not found: {resume}")
+    if mode in ("validate", "test", "export") and not resume:
+        log.warning("--%s without resume=<checkpoint>: using the freshly initialised system", mode)
+    cfg.timestamp = now_timestamp() if cfg.use_timestamp else ""
+
+    with warnings.catch_warnings():
+        filter_warnings(verbose)
+        lightning.seed_everything(cfg.seed, workers=True, verbose=verbose)
+        # Build (and so validate) everything before a trial dir is created for the run.
+        try:
+            dm_cls = find(cfg.data_type, kind="data")
+        except RegistryError as e:
+            raise RegistryError(f"data_type: {e}") from None
+        try:
+            system_cls = find(cfg.system_type, kind="systems")
+        except RegistryError as e:
+            raise RegistryError(f"system_type: {e}") from None
+        datamodule = dm_cls(cfg.data)
+        system = system_cls(cfg.system, resumed=bool(resume))
+        kw = trainer_kwargs(cfg, system, mode, args.gpu, verbose)
+        checkpoint_settings(cfg)
+        # Read the scene (cameras, photos, points) now: a bad input file ends the run before it
+        # has a trial dir. Lightning calls setup() again; the datamodules keep what they loaded.
+        datamodule.setup(STAGES[mode])
+
+        trial, reused = trial_dir_for(cfg, resume)
+        cfg.trial_dir = str(trial)
+        # Inputs read by the system itself (e.g. the PLY) fail inside the Lightning run.
+        with removed_if_start_fails(trial, reused, is_user_error):
+            write_trial_files(trial, cfg, args.config, shlex.join(["python", "launch.py", *argv]), reused)
+            trainer = _make_trainer(cfg, kw, trial, reused)
+            system.set_trial_dir(trial)
+            system.attach_datamodule(datamodule)
+            log.info("trial dir: %s", trial)
+            setup_seconds = time.perf_counter() - started
+            if mode == "train":
+                trainer.fit(system, datamodule=datamodule, ckpt_path=resume)
+            elif mode == "validate":
+                trainer.validate(system, datamodule=datamodule, ckpt_path=resume)
+            elif mode == "test":
+                trainer.test(system, datamodule=datamodule, ckpt_path=resume)
+            else:
+                export(trainer, system, datamodule, resume)
+    print_summary(RunInfo(
+        trial=trial, mode=mode, config_path=args.config, system_type=cfg.system_type, data_type=cfg.data_type,
+        resume=resume, steps=trainer.global_step if mode == "train" else None,
+        setup_seconds=setup_seconds, wall_seconds=time.perf_counter() - started, started_at=started_at,
+    ))
+    return 0
+
+
+def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool) -> "lightning.Trainer":
+    from gs_regional.launch.callbacks import StageProgressBar
+
+    callbacks = [StageProgressBar()] if kw.get("enable_progress_bar", True) else []
+    if kw.get("enable_checkpointing", True):
+        callbacks.insert(0, checkpoint_callback(cfg, trial))
+    if kw.get("logger", True) is True:
+        # A resumed run logs into its own folder: Lightning's CSV logger would delete the old file.
+        version = f"resume@{cfg.timestamp}" if reused else ""
+        kw = {**kw, "logger": CSVLogger(save_dir=str(trial), name="csv_logs", version=version)}
+    try:
+        return lightning.Trainer(default_root_dir=str(trial), callbacks=callbacks, **kw)
+    except Exception as e:
+        raise ConfigError(f"bad trainer settings: {type(e).__name__}: {e}") from None
+
+
+def export(trainer: Any, system: Any, datamodule: Any, resume: Optional[str]) -> None:
+    """`--export`: Lightning's predict loop restores `resume` exactly as fit does (the system's
+    setup, then its checkpoint extras, then the state dict) and BaseSystem.on_predict_end calls
+    the system's `on_export()`."""
+    from lightning.pytorch.utilities.model_helpers import is_overridden
+
+    from gs_regional.systems.base import BaseSystem
+
+    if isinstance(system, BaseSystem) and type(system).on_export is BaseSystem.on_export:
+        raise ConfigError(f"--export: system '{getattr(system, 'registered_name', type(system).__name__)}' has no export")
+    # With a datamodule, Lightning takes the predict dataloader only from it: lend it the
+    # system's one-batch loader if it has none (the datamodule stays attached for setup()).
+    if datamodule is not None and not is_overridden("predict_dataloader", datamodule):
+        datamodule.predict_dataloader = system.predict_dataloader
+    trainer.predict(system, datamodule=datamodule, ckpt_path=resume, return_predictions=False)

@@ -1,0 +1,93 @@
+"""Trial directories: `<exp_root_dir>/<name>/<tag>@<timestamp>`, never reusing an existing one
+(except the trial of a `resume=` checkpoint), with the config and command that made them."""
+from __future__ import annotations
+
+import contextlib
+import datetime
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Callable, Iterator, Optional, Tuple
+
+log = logging.getLogger(__name__)
+
+TIMESTAMP_FORMAT = "%Y%m%d-%H%M%S"
+
+
+def now_timestamp() -> str:
+    return datetime.datetime.now().strftime(TIMESTAMP_FORMAT)
+
+
+def _claim_dir(base: Path) -> Path:
+    """Create `base`, or `base-1`, `base-2`, ... if it exists: never reuse an existing trial dir."""
+    base.parent.mkdir(parents=True, exist_ok=True)
+    candidate, n = base, 0
+    while True:
+        try:
+            candidate.mkdir()  # atomic: two launches in the same second get different dirs
+            return candidate
+        except FileExistsError:
+            n += 1
+            candidate = base.with_name(f"{base.name}-{n}")
+
+
+def trial_dir_for(cfg: Any, resume: Optional[str]) -> Tuple[Path, bool]:
+    """(trial dir, reused?). A resume checkpoint inside `<trial>/ckpts/` reuses `<trial>`."""
+    if resume:
+        ckpt = Path(resume).resolve()
+        if ckpt.parent.name == "ckpts":
+            return ckpt.parent.parent, True
+        log.warning("resume checkpoint %s is not inside a trial's ckpts/ folder: starting a new trial dir", resume)
+    tag = str(cfg.tag or cfg.system_type or "run").replace("/", "-").replace(os.sep, "-")
+    name = f"{tag}@{cfg.timestamp}" if cfg.use_timestamp else tag
+    return _claim_dir(Path(cfg.exp_root_dir) / str(cfg.name) / name), False
+
+
+def _write_text(path: Path, text: str) -> None:
+    from gs_regional.utils.io import atomic_write
+
+    with atomic_write(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+
+
+def write_trial_files(trial: Path, cfg: Any, config_path: str, command: str, reused: bool) -> None:
+    """configs/parsed.yaml (resolved, after overrides), configs/raw.yaml (the file as given) and
+    cmd.txt. A resumed run keeps the first run's files and adds `@<timestamp>` copies."""
+    from omegaconf import OmegaConf
+
+    configs = trial / "configs"
+    configs.mkdir(parents=True, exist_ok=True)
+    suffix = f"@{cfg.timestamp or now_timestamp()}" if reused else ""
+    for stem, text in (
+        ("parsed", OmegaConf.to_yaml(cfg, resolve=True)),
+        ("raw", Path(config_path).read_text(encoding="utf-8")),
+    ):
+        path = configs / f"{stem}.yaml"
+        if path.exists() and reused:
+            path = configs / f"{stem}{suffix}.yaml"
+        _write_text(path, text)
+    cmd = trial / "cmd.txt"
+    previous = cmd.read_text(encoding="utf-8") if cmd.exists() else ""
+    _write_text(cmd, previous + command + "\n")
+
+
+def has_checkpoint(trial: Path) -> bool:
+    return any((trial / "ckpts").glob("*.ckpt"))
+
+
+@contextlib.contextmanager
+def removed_if_start_fails(trial: Path, reused: bool, is_user_error: Callable[[BaseException], bool]) -> Iterator[None]:
+    """Delete a trial dir this run created when the run fails on a mistake in its inputs or
+    config (`is_user_error`) before any checkpoint was written: the one-line error says all there
+    is to say, and an empty trial dir would only be clutter. A trial with a checkpoint, a reused
+    one, or one that ends in a bug (traceback) is kept."""
+    try:
+        yield
+    except BaseException as e:
+        if not reused and is_user_error(e) and not has_checkpoint(trial):
+            shutil.rmtree(trial, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                trial.parent.rmdir()  # only if empty
+        raise
