@@ -32,7 +32,7 @@ from gs_regional.registry import register
 @register("grayscale-editor")
 class GrayscaleEditor(Guidance):
     @dataclass
-    class Config:
+    class Config(Guidance.Config):  # inherits batch_size (views per call)
         strength: float = 1.0  # 1: fully grey; 0: unchanged
         luma: List[float] = field(default_factory=lambda: [0.299, 0.587, 0.114])  # Rec. 601 weights
 
@@ -47,12 +47,12 @@ class GrayscaleEditor(Guidance):
         w = torch.tensor(self.cfg.luma, dtype=images.dtype, device=images.device)
         return (images * w).sum(-1)
 
-    def _relevance(self, images, prompt, timestep, samples, seed, cameras) -> torch.Tensor:
+    def _relevance(self, images, prompt, timestep, samples, seeds, cameras) -> torch.Tensor:
         chroma = images.amax(-1) - images.amin(-1)  # (B, H, W): 0 for greys, 1 for pure colours
         peak = chroma.flatten(1).amax(1).clamp_min(1e-6)[:, None, None]
         return (chroma / peak).clamp(0, 1)
 
-    def _edit(self, images, cond_images, prompt, t_start: Optional[int], seed, cameras) -> torch.Tensor:
+    def _edit(self, images, cond_images, prompt, t_start: Optional[int], seeds, cameras) -> torch.Tensor:
         amount = self.cfg.strength
         if t_start is not None:  # t_start is in [0, num_train_timesteps) here
             amount *= t_start / self.num_train_timesteps

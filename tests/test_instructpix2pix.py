@@ -68,11 +68,12 @@ def test_relevance_range_shape_and_counters(ip2p):
     # Prompt embeddings are cached (text and the empty prompt).
     assert PROMPT in ip2p._emb_cache and "" in ip2p._emb_cache
     # A view's map does not depend on how the batch is split into UNet calls.
-    ip2p.cfg.max_batch_size = 1
+    assert ip2p.cfg.batch_size == 1  # the default: one view per UNet call
+    ip2p.cfg.batch_size = 4
     try:
         rel_split = ip2p.relevance(x, PROMPT, samples=2)
     finally:
-        ip2p.cfg.max_batch_size = 4
+        ip2p.cfg.batch_size = 1
     # 1e-3: the UNet's float reductions depend on batch size, CPU model, BLAS and thread count
     # (1e-5 failed on one x86 machine); maps are normalised to [0, 1], so 1e-3 never flips a mask.
     assert torch.allclose(rel, rel_split, atol=1e-3)
@@ -111,13 +112,36 @@ def test_edit_shape_determinism_counters(ip2p):
     assert ip2p.counters() == {"unet_evals": 3 * 2 * 20, "vae_encodes": 2, "vae_decodes": 2}
     assert torch.equal(out, ip2p.edit(x, cond, PROMPT, seed=0))
     assert (out - ip2p.edit(x, cond, PROMPT, seed=1)).abs().max() > 1e-3
-    ip2p.cfg.max_batch_size = 1
+    ip2p.cfg.batch_size = 4
     try:
         split = ip2p.edit(x, cond, PROMPT, seed=0)
     finally:
-        ip2p.cfg.max_batch_size = 4
+        ip2p.cfg.batch_size = 1
     # 1e-3 on [0, 1] images: batch-size-dependent float reductions (see the relevance test).
     assert torch.allclose(out, split, atol=1e-3)
+
+
+def test_each_view_is_edited_as_alone_with_its_own_seed(ip2p):
+    """One seed per view: a batched call gives every view what a call with that view alone gives,
+    whatever the batch size; the noise of a view follows its own seed, not its position."""
+    x, cond = images(3, 24, 24), images(3, 24, 24, seed=1)
+    seeds = [7, 1003, 42]
+    alone = torch.cat([ip2p.edit(x[i : i + 1], cond[i : i + 1], PROMPT, t_start=600, seed=s) for i, s in enumerate(seeds)])
+    rel_alone = torch.cat([ip2p.relevance(x[i : i + 1], PROMPT, samples=2, seed=s) for i, s in enumerate(seeds)])
+    for batch_size in (1, 2, 3):
+        ip2p.cfg.batch_size = batch_size
+        try:
+            edited = ip2p.edit(x, cond, PROMPT, t_start=600, seed=seeds)
+            rel = ip2p.relevance(x, PROMPT, samples=2, seed=seeds)
+        finally:
+            ip2p.cfg.batch_size = 1
+        # 1e-3 on [0, 1] images: batch-size-dependent float reductions (see the relevance test).
+        assert torch.allclose(edited, alone, atol=1e-3), (batch_size, float((edited - alone).abs().max()))
+        assert torch.allclose(rel, rel_alone, atol=1e-3), batch_size
+        if batch_size == 1:  # the same computations: exactly equal
+            assert torch.equal(edited, alone) and torch.equal(rel, rel_alone)
+    swapped = ip2p.edit(x, cond, PROMPT, t_start=600, seed=[seeds[1], seeds[0], seeds[2]])
+    assert (swapped[0] - alone[0]).abs().max() > 1e-2 and torch.equal(swapped[2], alone[2])
 
 
 def test_partial_edit_starts_at_the_scheduled_step(ip2p, monkeypatch):

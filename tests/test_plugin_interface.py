@@ -32,7 +32,7 @@ def _cam(size=8):
 
 
 def test_guidance_checks_once_then_calls_the_plugin():
-    ed = InvertEditor()
+    ed = InvertEditor({"batch_size": 2})
     x = torch.rand(2, 8, 8, 3)
     out = ed.edit(x, x, "invert it", t_start=500, cameras=[_cam(), _cam()])
     torch.testing.assert_close(out, 1 - x)
@@ -75,6 +75,53 @@ def test_guidance_names_what_a_plugin_lacks_or_returns_wrong():
         InvertEditor().relevance(x, "p", timestep=1000)
     with pytest.raises(ValueError, match="samples must be an integer >= 1"):
         InvertEditor().relevance(x, "p", samples=0)
+
+
+class SeedEditor(Guidance):
+    """Adds each view's seed (as a brightness) and records the batches it is called with."""
+
+    def __init__(self, cfg=None, where: str = "") -> None:
+        super().__init__(cfg, where)
+        self.batches = []
+
+    def _relevance(self, images, prompt, timestep, samples, seeds, cameras):
+        self.batches.append(list(seeds))
+        return torch.tensor(seeds, dtype=torch.float32)[:, None, None].expand(images.shape[:3]) / 100
+
+    def _edit(self, images, cond_images, prompt, t_start, seeds, cameras):
+        self.batches.append((list(seeds), None if cameras is None else len(cameras)))
+        return torch.tensor(seeds, dtype=torch.float32)[:, None, None, None].expand(images.shape) / 100
+
+
+def test_guidance_batches_views_and_gives_each_its_seed():
+    x = torch.rand(5, 8, 8, 3)
+    ed = SeedEditor({"batch_size": 2})
+    out = ed.edit(x, x, "p", seed=[10, 11, 12, 13, 14], cameras=[_cam()] * 5)
+    assert ed.batches == [([10, 11], 2), ([12, 13], 2), ([14], 1)]  # at most batch_size views per call
+    torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([0.10, 0.11, 0.12, 0.13, 0.14]))
+    ed.batches.clear()
+    assert ed.relevance(x, "p", seed=7).shape == (5, 8, 8)
+    assert ed.batches == [[7, 7], [7, 7], [7]]  # an int seed is every view's seed
+    with pytest.raises(ValueError, match="SeedEditor.edit: 5 images but 2 seeds"):
+        ed.edit(x, x, "p", seed=[1, 2])
+    with pytest.raises(TypeError, match="seed must be an int or a list of one int per image"):
+        ed.edit(x, x, "p", seed=[1.5] * 5)
+    with pytest.raises(TypeError, match="seed must be an int"):
+        ed.relevance(x, "p", seed="0")
+    with pytest.raises(ValueError, match="batch_size .* must be >= 1"):
+        SeedEditor({"batch_size": 0})
+
+
+def test_guidance_config_must_carry_batch_size():
+    from dataclasses import dataclass
+
+    class OwnConfigEditor(Guidance):
+        @dataclass
+        class Config:
+            strength: float = 1.0
+
+    with pytest.raises(TypeError, match=r"OwnConfigEditor.Config must derive from Guidance.Config"):
+        OwnConfigEditor()
 
 
 class CamerasOnlyDepth(DepthEstimator):

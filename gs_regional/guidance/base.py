@@ -1,20 +1,30 @@
 """The guidance interface shared by `instructpix2pix`, `simulated-editor` and user plugins.
 
 Template method (as threestudio's base modules): the public `relevance`, `mask` and `edit`
-validate and convert their arguments once (images, cameras, prompt, timesteps), call the plugin's
-`_relevance` / `_edit`, and check the shape of what it returns. A plugin implements only
-`_relevance` and `_edit` and receives checked inputs.
+validate and convert their arguments once (images, cameras, prompt, timesteps, seeds), split the
+views into batches of `batch_size`, call the plugin's `_relevance` / `_edit` once per batch, and
+check the shape of what it returns. A plugin implements only `_relevance` and `_edit` and receives
+checked inputs, at most `batch_size` views at a time, with one seed per view.
+
+Seeds are per view (`seed=` an int for every view, or a list of one per view) and a plugin draws
+each view's randomness from a generator of that view's own seed: a view's result depends on its
+image, seed and camera only, never on which views share the call or how the call is batched.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Union
 
 import torch
 
+from gs_regional.config import ConfigError
 from gs_regional.data.cameras import Camera
 from gs_regional.utils.base import Configurable, component_name
 from gs_regional.utils.image import check_cameras, check_images, check_output_shape, gaussian_blur
+from gs_regional.utils.pretrained import batches
+
+Seeds = Union[int, Sequence[int]]
 
 
 class Guidance(Configurable):
@@ -26,7 +36,9 @@ class Guidance(Configurable):
 
     @dataclass
     class Config:
-        pass
+        # Views per model call (a UNet call spends 2x these images for relevance, 3x for edit).
+        # Larger batches are faster on a GPU and need more memory; results do not depend on it.
+        batch_size: int = 1
 
     # Timesteps (`timestep` of relevance, `t_start` of edit) are integers in
     # [0, num_train_timesteps): Stable Diffusion's training schedule unless a plugin says otherwise.
@@ -37,6 +49,13 @@ class Guidance(Configurable):
 
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)
+        if not hasattr(self.cfg, "batch_size"):
+            raise TypeError(
+                f"{type(self).__name__}.Config must derive from Guidance.Config (it holds batch_size, the views "
+                "per model call): write `class Config(Guidance.Config):`"
+            )
+        if self.cfg.batch_size < 1:
+            raise ConfigError(f"{component_name(self)}: batch_size (views per model call) must be >= 1, got {self.cfg.batch_size}")
         self.reset_counters()
 
     def reset_counters(self) -> None:
@@ -55,12 +74,12 @@ class Guidance(Configurable):
         prompt: str,
         timestep: int = 600,
         samples: int = 1,
-        seed: int = 0,
+        seed: Seeds = 0,
         cameras: Optional[Sequence[Camera]] = None,
     ) -> torch.Tensor:
         """Per-view relevance maps (B, H, W) in [0, 1], each normalised to its own max: where the
         instruction `prompt` would change each image, judged at noise level `timestep` and averaged
-        over `samples` noise draws (seeded by `seed`)."""
+        over `samples` noise draws (seeded per view by `seed`: an int for every view or a list)."""
         where = f"{component_name(self)}.relevance"
         images = check_images(images, f"{where}: images")
         cameras = check_cameras(cameras, images.shape[0], where, self.requires_cameras)
@@ -68,8 +87,12 @@ class Guidance(Configurable):
         self._check_timestep(timestep, "timestep", where)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise ValueError(f"{where}: samples must be an integer >= 1, got {samples!r}")
-        maps = self._relevance(images, prompt, timestep, samples, seed, cameras)
-        return check_output_shape(maps, images.shape[:3], where)
+        seeds = self._check_seeds(seed, images.shape[0], where)
+        maps = []
+        for s in batches(images.shape[0], self.cfg.batch_size):
+            out = self._relevance(images[s], prompt, timestep, samples, seeds[s], _part(cameras, s))
+            maps.append(check_output_shape(out, images[s].shape[:3], where))
+        return torch.cat(maps)
 
     def mask(
         self,
@@ -79,7 +102,7 @@ class Guidance(Configurable):
         blur_sigma: float = 2.0,
         timestep: int = 600,
         samples: int = 1,
-        seed: int = 0,
+        seed: Seeds = 0,
         cameras: Optional[Sequence[Camera]] = None,
     ) -> torch.Tensor:
         """Binary 2D masks (B, H, W) float: threshold at γ, Gaussian-filter specks away, re-binarise.
@@ -99,11 +122,12 @@ class Guidance(Configurable):
         cond_images: torch.Tensor,
         prompt: str,
         t_start: Optional[int] = None,
-        seed: int = 0,
+        seed: Seeds = 0,
         cameras: Optional[Sequence[Camera]] = None,
     ) -> torch.Tensor:
         """Edited images (B, H, W, 3): noise `images` to `t_start` (None: pure noise, a full edit) and
-        denoise conditioned on `cond_images` (the unedited views, same shape) and `prompt`."""
+        denoise conditioned on `cond_images` (the unedited views, same shape) and `prompt`. `seed`:
+        an int for every view or a list of one per view; each view is edited as it would be alone."""
         where = f"{component_name(self)}.edit"
         images = check_images(images, f"{where}: images")
         cond_images = check_images(cond_images, f"{where}: cond_images")
@@ -115,17 +139,22 @@ class Guidance(Configurable):
         self._check_prompt(prompt, where)
         if t_start is not None:
             self._check_timestep(t_start, "t_start", where)
-        edited = self._edit(images, cond_images, prompt, t_start, seed, cameras)
-        return check_output_shape(edited, images.shape, where)
+        seeds = self._check_seeds(seed, images.shape[0], where)
+        edited = []
+        for s in batches(images.shape[0], self.cfg.batch_size):
+            out = self._edit(images[s], cond_images[s], prompt, t_start, seeds[s], _part(cameras, s))
+            edited.append(check_output_shape(out, images[s].shape, where))
+        return torch.cat(edited)
 
     # ------------------------------------------------------------------ what a plugin implements
 
     def _relevance(
-        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: Optional[List[Camera]]
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seeds: List[int], cameras: Optional[List[Camera]]
     ) -> torch.Tensor:
-        """Implement this: maps (B, H, W) in [0, 1] for a checked (B, H, W, 3) batch `images`, a
-        non-empty `prompt`, an integer `timestep` in [0, num_train_timesteps), `samples` >= 1 and
-        `cameras` None or a list of one camera per image."""
+        """Implement this: maps (B, H, W) in [0, 1] for a checked (B, H, W, 3) batch `images` of at
+        most `batch_size` views, a non-empty `prompt`, an integer `timestep` in [0,
+        num_train_timesteps), `samples` >= 1, `seeds` one int per image (draw each view's noise
+        from a generator of its own seed) and `cameras` None or a list of one camera per image."""
         raise NotImplementedError(f"{type(self).__name__} must implement _relevance(...)")
 
     def _edit(
@@ -134,15 +163,31 @@ class Guidance(Configurable):
         cond_images: torch.Tensor,
         prompt: str,
         t_start: Optional[int],
-        seed: int,
+        seeds: List[int],
         cameras: Optional[List[Camera]],
     ) -> torch.Tensor:
         """Implement this: edited (B, H, W, 3) images in [0, 1] for checked batches `images` and
-        `cond_images` of the same shape, a non-empty `prompt`, `t_start` None or an integer in
-        [0, num_train_timesteps) and `cameras` None or a list of one camera per image."""
+        `cond_images` of the same shape (at most `batch_size` views), a non-empty `prompt`,
+        `t_start` None or an integer in [0, num_train_timesteps), `seeds` one int per image (draw
+        each view's noise from a generator of its own seed) and `cameras` None or a list of one
+        camera per image."""
         raise NotImplementedError(f"{type(self).__name__} must implement _edit(...)")
 
     # ------------------------------------------------------------------ checks
+
+    @staticmethod
+    def _check_seeds(seed: Seeds, n_images: int, where: str) -> List[int]:
+        """One int seed per image: an int applies to every image, a sequence gives one each."""
+        def is_int(x) -> bool:
+            return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+        if is_int(seed):
+            return [int(seed)] * n_images
+        if isinstance(seed, (str, bytes)) or not isinstance(seed, Sequence) or not all(is_int(s) for s in seed):
+            raise TypeError(f"{where}: seed must be an int or a list of one int per image, got {seed!r}")
+        if len(seed) != n_images:
+            raise ValueError(f"{where}: {n_images} images but {len(seed)} seeds")
+        return [int(s) for s in seed]
 
     @staticmethod
     def _check_prompt(prompt: str, where: str) -> None:
@@ -153,3 +198,7 @@ class Guidance(Configurable):
         n = self.num_train_timesteps
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < n:
             raise ValueError(f"{where}: {name} must be an integer timestep in [0, {n - 1}], got {t!r}")
+
+
+def _part(cameras: Optional[List[Camera]], views: slice) -> Optional[List[Camera]]:
+    return None if cameras is None else cameras[views]

@@ -25,7 +25,7 @@ from gs_regional.data.cameras import Camera
 from gs_regional.guidance.base import Guidance
 from gs_regional.registry import register
 from gs_regional.utils.image import resize, to_nchw
-from gs_regional.utils.pretrained import Pretrained, PretrainedLoadError, batches
+from gs_regional.utils.pretrained import Pretrained, PretrainedLoadError
 
 # -------------------------------------------------------------------------------- the guidance
 
@@ -41,14 +41,15 @@ _IP2P_COMPONENTS = {
 @register("instructpix2pix")
 class InstructPix2Pix(Guidance):
     @dataclass
-    class Config:
+    class Config(Guidance.Config):
+        # batch_size (Guidance.Config): views per UNet call; the UNet batch is 2x this in
+        # relevance and 3x in edit. 1 is the least memory; 4-8 are faster on a large GPU.
         pretrained: str = "timbrooks/instruct-pix2pix"  # hub id or local folder (diffusers layout)
         dtype: str = "auto"  # auto = float16 on CUDA, float32 on CPU; float32 | float16 | bfloat16
         device: str = "auto"
         guidance_scale: float = 7.5  # text guidance s_t
         image_guidance_scale: float = 1.5  # image guidance s_i
         num_inference_steps: int = 20  # DDIM steps of a full edit
-        max_batch_size: int = 4  # images per UNet call (the UNet batch is 3x this in edit)
         channels_last: bool = False
         sdpa: bool = True  # torch scaled-dot-product attention (AttnProcessor2_0) when available
         cpu_offload: bool = False  # keep modules on the CPU and move each to the device only while used
@@ -59,7 +60,7 @@ class InstructPix2Pix(Guidance):
         c = self.cfg
         if c.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
-        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size)
+        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only)
         self.device, self.dtype = source.device, source.dtype
         self._load(source)
         self._emb_cache: Dict[str, torch.Tensor] = {}
@@ -160,22 +161,17 @@ class InstructPix2Pix(Guidance):
 
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
         """Mode of the VAE posterior (unscaled), float32 (B, 4, H/8, W/8)."""
-        out = []
         with torch.no_grad(), self._using(self.vae) as vae:
-            for s in batches(x.shape[0], self.cfg.max_batch_size):
-                out.append(vae.encode((x[s] * 2 - 1).to(self.dtype)).latent_dist.mode().float())
+            z = vae.encode((x * 2 - 1).to(self.dtype)).latent_dist.mode().float()
         self.vae_encodes += x.shape[0]
-        return torch.cat(out)
+        return z
 
     def _decode(self, z: torch.Tensor) -> torch.Tensor:
         """Scaled latents -> (B, 3, H, W) images in [0, 1], float32."""
-        out = []
         with torch.no_grad(), self._using(self.vae) as vae:
-            for s in batches(z.shape[0], self.cfg.max_batch_size):
-                x = vae.decode((z[s] / self.scaling_factor).to(self.dtype)).sample.float()
-                out.append(((x + 1) / 2).clamp(0, 1))
+            x = vae.decode((z / self.scaling_factor).to(self.dtype)).sample.float()
         self.vae_decodes += z.shape[0]
-        return torch.cat(out)
+        return ((x + 1) / 2).clamp(0, 1)
 
     def _unet(self, unet, latents: torch.Tensor, t: torch.Tensor, image_latents: torch.Tensor, emb: torch.Tensor):
         inp = torch.cat([latents, image_latents], dim=1).to(self.dtype)
@@ -183,42 +179,45 @@ class InstructPix2Pix(Guidance):
             inp = inp.contiguous(memory_format=torch.channels_last)
         return unet(inp, t.to(self.device), encoder_hidden_states=emb).sample.float()
 
-    def _noise(self, shape, generator: torch.Generator) -> torch.Tensor:
-        # Drawn on the CPU so that results do not depend on the device or on the batch split.
-        return torch.randn(shape, generator=generator, dtype=torch.float32).to(self.device)
+    def _noise(self, shape, generators: List[torch.Generator]) -> torch.Tensor:
+        """(B, *shape) noise, view b drawn from generators[b]: on the CPU, so that a view's noise
+        depends neither on the device nor on the other views of the call."""
+        return torch.stack([torch.randn(shape, generator=g, dtype=torch.float32) for g in generators]).to(self.device)
+
+    @staticmethod
+    def _generators(seeds: List[int]) -> List[torch.Generator]:
+        return [torch.Generator("cpu").manual_seed(int(s)) for s in seeds]
 
     # ------------------------------------------------------------------ the interface
 
     def _relevance(
-        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: Optional[List[Camera]]
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seeds: List[int], cameras: Optional[List[Camera]]
     ) -> torch.Tensor:
         """Per-view maps (B, H, W) in [0, 1]: D = mean over latent channels of
         |ε(z_τ, x, c) − ε(z_τ, x, ∅)|, averaged over `samples` noise draws, bilinearly upsampled from
         latent to image size, then divided by its per-view max (each view's strongest response is 1;
-        an all-zero map stays 0). z0 is the mode of the VAE posterior (deterministic)."""
-        b_all, h, w = images.shape[:3]
+        an all-zero map stays 0). z0 is the mode of the VAE posterior (deterministic). View b's
+        noise draws come from a generator of seeds[b]."""
+        b, h, w = images.shape[:3]
         mode = self._encode(self._prepare(images))  # one encode serves as z0 and as the image condition
         z0 = mode * self.scaling_factor
         cond, null = self._embed(prompt), self._embed("")
+        emb = torch.cat([cond.expand(b, -1, -1), null.expand(b, -1, -1)])
         t = torch.tensor(timestep, dtype=torch.long)
-        generator = torch.Generator("cpu").manual_seed(int(seed))
-        diff = torch.zeros(b_all, *mode.shape[2:], device=self.device)
+        generators = self._generators(seeds)
+        diff = torch.zeros(b, *mode.shape[2:], device=self.device)
         with torch.no_grad(), self._using(self.unet) as unet:
             for _ in range(samples):
-                z_t = self.scheduler.add_noise(z0, self._noise(z0.shape, generator), t.expand(b_all))
-                for s in batches(b_all, self.cfg.max_batch_size):
-                    b = s.stop - s.start
-                    emb = torch.cat([cond.expand(b, -1, -1), null.expand(b, -1, -1)])
-                    eps = self._unet(unet, z_t[s].repeat(2, 1, 1, 1), t, mode[s].repeat(2, 1, 1, 1), emb)
-                    eps_c, eps_u = eps.chunk(2)
-                    diff[s] += (eps_c - eps_u).abs().mean(dim=1)
-                    self.unet_evals += 2 * b
+                z_t = self.scheduler.add_noise(z0, self._noise(z0.shape[1:], generators), t.expand(b))
+                eps_c, eps_u = self._unet(unet, z_t.repeat(2, 1, 1, 1), t, mode.repeat(2, 1, 1, 1), emb).chunk(2)
+                diff += (eps_c - eps_u).abs().mean(dim=1)
+                self.unet_evals += 2 * b
         diff = F.interpolate((diff / samples)[:, None], size=(h, w), mode="bilinear", align_corners=False)[:, 0]
         diff = diff / diff.flatten(1).amax(dim=1).clamp_min(1e-12)[:, None, None]
         return diff.clamp(0, 1).to(images.device)
 
     def _edit(
-        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seed: int, cameras
+        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seeds: List[int], cameras
     ) -> torch.Tensor:
         """Edited images (B, H, W, 3) in [0, 1] at the input size.
 
@@ -226,7 +225,8 @@ class InstructPix2Pix(Guidance):
         edit). Otherwise noise the (mode) latents of `images` to the largest scheduled timestep
         <= t_start and run only the scheduled steps from there. Guidance as diffusers' IP2P
         pipeline: ε = ε_u + s_t(ε_txt − ε_img) + s_i(ε_img − ε_u), branches (text + image),
-        (empty text + image), (empty text + zero image latents). Deterministic given `seed`.
+        (empty text + image), (empty text + zero image latents). View b's noise comes from a
+        generator of seeds[b], so it is edited exactly as it would be alone (up to float rounding).
         """
         sched = self.scheduler
         sched.set_timesteps(self.cfg.num_inference_steps)
@@ -238,31 +238,25 @@ class InstructPix2Pix(Guidance):
                     f"t_start={t_start} is below the last DDIM timestep {int(sched.timesteps[-1])} for "
                     f"num_inference_steps={self.cfg.num_inference_steps}: nothing to denoise"
                 )
-        b_all, h, w = images.shape[:3]
+        b, h, w = images.shape[:3]
         image_lat = self._encode(self._prepare(cond_images))
-        generator = torch.Generator("cpu").manual_seed(int(seed))
-        noise = self._noise(image_lat.shape, generator)
+        noise = self._noise(image_lat.shape[1:], self._generators(seeds))
         if t_start is None:
-            latents = noise * sched.init_noise_sigma
+            lat = noise * sched.init_noise_sigma
         else:
             z0 = self._encode(self._prepare(images)) * self.scaling_factor
-            latents = sched.add_noise(z0, noise, steps[:1].expand(b_all))
+            lat = sched.add_noise(z0, noise, steps[:1].expand(b))
         text, null = self._embed(prompt), self._embed("")
         s_t, s_i = self.cfg.guidance_scale, self.cfg.image_guidance_scale
-        out = []
+        cond_lat = torch.cat([image_lat, image_lat, torch.zeros_like(image_lat)])
+        emb = torch.cat([text.expand(b, -1, -1), null.expand(b, -1, -1), null.expand(b, -1, -1)])
         with torch.no_grad(), self._using(self.unet) as unet:
-            for s in batches(b_all, self.cfg.max_batch_size):
-                b = s.stop - s.start
-                lat = latents[s]
-                cond_lat = torch.cat([image_lat[s], image_lat[s], torch.zeros_like(image_lat[s])])
-                emb = torch.cat([text.expand(b, -1, -1), null.expand(b, -1, -1), null.expand(b, -1, -1)])
-                for t in steps:
-                    inp = sched.scale_model_input(lat.repeat(3, 1, 1, 1), t)
-                    eps_txt, eps_img, eps_unc = self._unet(unet, inp, t, cond_lat, emb).chunk(3)
-                    eps = eps_unc + s_t * (eps_txt - eps_img) + s_i * (eps_img - eps_unc)
-                    lat = sched.step(eps, t, lat).prev_sample
-                    self.unet_evals += 3 * b
-                out.append(lat)
-        edited = self._decode(torch.cat(out))
+            for t in steps:
+                inp = sched.scale_model_input(lat.repeat(3, 1, 1, 1), t)
+                eps_txt, eps_img, eps_unc = self._unet(unet, inp, t, cond_lat, emb).chunk(3)
+                eps = eps_unc + s_t * (eps_txt - eps_img) + s_i * (eps_img - eps_unc)
+                lat = sched.step(eps, t, lat).prev_sample
+                self.unet_evals += 3 * b
+        edited = self._decode(lat)
         edited = resize(edited, (h, w)).clamp(0, 1)
         return edited.permute(0, 2, 3, 1).contiguous().to(images.device)

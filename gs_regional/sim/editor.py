@@ -93,7 +93,7 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
     requires_cameras = True  # it renders the true edited scene at each view
 
     @dataclass
-    class Config:
+    class Config(Guidance.Config):
         seed: int = 0  # base seed of the per-view randomness (combined with the call's seed and the camera)
         renderer: str = "torch-rasterizer"  # renders the ground truth
         background: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # as the data module
@@ -138,12 +138,12 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
 
     # ------------------------------------------------------------------ relevance
     def _relevance(
-        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seed: int, cameras: List[Camera]
+        self, images: torch.Tensor, prompt: str, timestep: int, samples: int, seeds: List[int], cameras: List[Camera]
     ) -> torch.Tensor:
         cams = self._cameras(images, cameras, "relevance")
         c = self.cfg
         out = []
-        for cam in cams:
+        for cam, seed in zip(cams, seeds):
             maps = self.truth_renderer.region_maps(cam)
             region, related = maps[..., 0], maps[..., 1]
             if c.spread > 0:
@@ -195,7 +195,7 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
         return img + k * ((soft * gain + offset).clamp(0, 1) - img)
 
     def _edit(
-        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seed: int, cameras
+        self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seeds: List[int], cameras
     ) -> torch.Tensor:
         cams = self._cameras(images, cameras, "edit")
         c = self.cfg
@@ -204,7 +204,7 @@ class SimulatedEditor(GroundTruthConsumer, Guidance):
             raise ValueError(f"simulated-editor.edit: t_start={t_start} is below the last DDIM timestep (1): nothing to denoise")
         k = edit_strength(t_start)
         out = []
-        for img, cam in zip(images.detach().float().cpu(), cams):
+        for img, cam, seed in zip(images.detach().float().cpu(), cams, seeds):
             v = self.truth_renderer.views(cam)
             diff = torch.maximum((v["edit_rgb"] - v["src_rgb"]).abs().amax(-1), (v["edit_alpha"] - v["src_alpha"]).abs())
             area = ((diff - c.edit_threshold) / (2 * c.edit_threshold)).clamp(0, 1)  # soft edges

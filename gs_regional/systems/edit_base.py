@@ -6,7 +6,7 @@ import copy
 import logging
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import torch
 
@@ -15,6 +15,7 @@ from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.registry import find
+from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems.base import BaseSystem
 from gs_regional.utils.image import dilate
@@ -47,7 +48,7 @@ class EditSystemBase(BaseSystem):
     class Config:
         geometry_type: str = "gaussian-model"
         geometry: dict = field(default_factory=dict)
-        renderer_type: str = "torch-rasterizer"
+        renderer_type: str = "auto"  # gsplat-rasterizer on a CUDA device when gsplat imports, else torch-rasterizer
         renderer: dict = field(default_factory=dict)
         guidance_type: str = "instructpix2pix"
         guidance: dict = field(default_factory=dict)
@@ -63,7 +64,9 @@ class EditSystemBase(BaseSystem):
         cfg = self.cfg
         if not cfg.prompt or not cfg.prompt.strip():
             raise ConfigError("system.prompt is empty: say what to change, e.g. system.prompt=\"give him a mustache\"")
-        self.renderer = find(cfg.renderer_type, kind="renderers")(cfg.renderer)
+        # Built in setup(), for the device the trainer places the module on; checked now.
+        check_renderer_config(cfg.renderer_type, cfg.renderer)
+        self._source_renders: Optional[List[torch.Tensor]] = None
         # The 2D editor is not an nn.Module of the system: its weights never enter checkpoints.
         self.guidance = find(cfg.guidance_type, kind="guidance")(cfg.guidance)
         self.lpips = None
@@ -104,10 +107,7 @@ class EditSystemBase(BaseSystem):
         # The unedited scene, for source renders and comparisons. Kept out of the module tree
         # (object.__setattr__) so it never enters checkpoints: setup() rebuilds it on resume.
         object.__setattr__(self, "source_model", copy.deepcopy(self.geometry).requires_grad_(False))
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            self.source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
-        self.add_time("source_renders", time.perf_counter() - t0)
+        self.renderer = make_renderer(self.cfg.renderer_type, self.cfg.renderer, self.trainer.strategy.root_device)
 
     def attach_ground_truth(self, truth: GroundTruth) -> None:
         """Hand the scene's known edit to every prior that renders one (the simulators)."""
@@ -116,9 +116,23 @@ class EditSystemBase(BaseSystem):
                 prior.attach_ground_truth(truth)
 
     def on_fit_start(self) -> None:
-        # setup() ran before Lightning moved the module to its device; follow it.
+        # setup() ran before Lightning moved the module to its device: the source scene follows it
+        # and is rendered there, once (a resumed run renders it again; renders are deterministic).
         self.source_model.to(self.device)
-        self.source_renders = [r.to(self.device) for r in self.source_renders]
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            self._source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
+        self.add_time("source_renders", time.perf_counter() - t0)
+
+    @property
+    def source_renders(self) -> List[torch.Tensor]:
+        """(H, W, 3) render of the unedited scene at every camera, on the module's device."""
+        if self._source_renders is None:
+            raise RuntimeError(
+                "source renders are made in on_fit_start, once Lightning has moved the system to its device; "
+                "they are not available before fit starts"
+            )
+        return self._source_renders
 
     def render_view(self, index: int, model=None, **kw) -> Dict[str, torch.Tensor]:
         cam = self.scene.cameras[index].to(self.device)

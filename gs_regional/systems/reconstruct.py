@@ -28,7 +28,8 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.metrics.image import psnr, ssim, ssim_loss_value
-from gs_regional.registry import find, register
+from gs_regional.registry import register
+from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.systems.base import BaseSystem
 from gs_regional.systems.edit_base import LearningRates
 
@@ -56,7 +57,7 @@ class DensifyConfig:
 class Reconstruct(BaseSystem):
     @dataclass
     class Config:
-        renderer_type: str = "torch-rasterizer"
+        renderer_type: str = "auto"  # gsplat-rasterizer on a CUDA device when gsplat imports, else torch-rasterizer
         renderer: dict = field(default_factory=dict)
         sh_degree: int = 3
         sh_degree_every: int = 1000  # one more active SH degree every n steps (0: all at once)
@@ -86,7 +87,8 @@ class Reconstruct(BaseSystem):
             raise ConfigError(f"system.background must be 3 values (r, g, b in [0, 1]), got {list(cfg.background)}")
         if cfg.densify.every < 1:
             raise ConfigError(f"system.densify.every must be >= 1, got {cfg.densify.every}")
-        self.renderer = find(cfg.renderer_type, kind="renderers")(cfg.renderer)
+        # Built in setup(), for the device the trainer places the module on; checked now.
+        check_renderer_config(cfg.renderer_type, cfg.renderer)
         self.geometry: Optional[GaussianModel] = None
         self.seconds_before = 0.0  # fit time of the runs this one resumes
         self.steps_before = 0  # steps of the checkpoint loaded (--export does not restore global_step)
@@ -127,6 +129,7 @@ class Reconstruct(BaseSystem):
             xyz = mid + (torch.rand(cfg.random_points, 3, generator=gen) * 2 - 1) * radius
             rgb = torch.rand(cfg.random_points, 3, generator=gen)
         self.geometry = GaussianModel.from_points(xyz, rgb, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity)
+        self.renderer = make_renderer(cfg.renderer_type, cfg.renderer, self.trainer.strategy.root_device)
         if cfg.background is not None:
             self.background = torch.tensor(list(cfg.background), dtype=torch.float32)
         else:

@@ -221,25 +221,31 @@ class RegionalEdit(EditSystemBase):
             frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
-        t = self.start_timestep(cycle)
-        targets = []
-        for k, j in enumerate(views):
-            if cycle == 0 and j == self.v_first:
-                targets.append(self.composite(j, self.first_edit))
-                continue
-            current = self.render_view(j)["rgb"].clamp(0, 1)
-            edited = self.guidance.edit(
-                current[None], self.source_renders[j][None], cfg.prompt, t_start=t,
-                seed=cfg.seed + 1000 * (cycle + 1) + j, cameras=[scene.cameras[j]],
-            )[0]
-            targets.append(self.composite(j, edited.to(self.device)))
-        self.cycle_targets = torch.stack(targets)
+        # Every view is edited from a render of the same scene state, so all go to the editor in one
+        # call (batched by guidance.batch_size), each with its own seed as if edited alone.
+        to_edit = [j for j in views if not (cycle == 0 and j == self.v_first)]
+        edited = {}
+        if to_edit:
+            current = torch.stack([self.render_view(j)["rgb"].clamp(0, 1) for j in to_edit])
+            out = self.guidance.edit(
+                current, torch.stack([self.source_renders[j] for j in to_edit]), cfg.prompt,
+                t_start=self.start_timestep(cycle), seed=[self.view_seed(cycle, j) for j in to_edit],
+                cameras=[scene.cameras[j] for j in to_edit],
+            )
+            edited = dict(zip(to_edit, out.to(self.device)))
+        if cycle == 0:
+            edited[self.v_first] = self.first_edit  # the first, full edit is this cycle's frontal target
+        self.cycle_targets = torch.stack([self.composite(j, edited[j]) for j in views])
         self.cycle_views = views
         self.targets_cycle = cycle
         self.edited_views = sorted(set(self.edited_views) | set(views))
         shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
         self.add_time("refine_edit", time.perf_counter() - t0)
+
+    def view_seed(self, cycle: int, index: int) -> int:
+        """The editor's seed for view `index` in refinement cycle `cycle`."""
+        return self.cfg.seed + 1000 * (cycle + 1) + index
 
     def source_region(self, index: int) -> torch.Tensor:
         """(H, W) render of the localized Gaussians of the source scene at view `index`."""
