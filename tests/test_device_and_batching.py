@@ -18,7 +18,7 @@ from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
 from trial_helpers import metrics_of, trial_of
 from gs_regional.config import ConfigError
 from gs_regional.guidance.instructpix2pix import InstructPix2Pix
-from gs_regional.launcher import main
+from gs_regional.launch import main
 from gs_regional.registry import register
 from gs_regional.renderers import gsplat_rasterizer as gsplat_mod
 from gs_regional.renderers.select import check_renderer_config, make_renderer, resolve_renderer_type
@@ -40,10 +40,12 @@ SMALL_SCENE = [
 SMALL_DEMO = SMALL_SCENE + ["system.localization.max_views=8"]
 
 
-def launch(tmp, name, config, *overrides, gpu=None):
+def launch(tmp, name, config, *overrides, gpu=None, verbose=False):
     argv = ["--config", str(ROOT / config), "--train", f"exp_root_dir={tmp}", f"name={name}", *overrides]
     if gpu is not None:
         argv += ["--gpu", str(gpu)]
+    if verbose:  # info lines of every gs_regional module (the console is quiet by default)
+        argv.append("--verbose")
     assert main(argv) == 0
     return trial_of(tmp, name)
 
@@ -291,6 +293,7 @@ def test_edit_runs_with_auto_renderer_on_cuda(tmp_path, tiny_models, caplog):  #
             "system.localization.max_views=4", "system.localization.gamma=0.5", "system.localization.mask_threshold=0.3",
             "system.refine.cycles=2", "system.refine.t_schedule=[750,500]", "system.refine.iterations_per_cycle=5",
             "system.refine.m=3", "system.eval.turntable_frames=3", "trainer.enable_progress_bar=false", gpu=0,
+            verbose=True,
         )
     assert any("renderer_type auto: gsplat-rasterizer" in r.getMessage() for r in caplog.records)
     assert (Path(trial) / "save" / "edited.ply").exists()
