@@ -32,6 +32,9 @@ def _first_line(e: OmegaConfBaseException) -> str:
 def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "") -> T:
     """Merge a plain/OmegaConf mapping into the dataclass `cfg_cls`, rejecting unknown keys.
 
+    A dataclass may name keys that moved elsewhere in a class attribute `MOVED_KEYS`
+    ({old key: new full key}); using one fails with the new name.
+
     `where` names the YAML section (e.g. "system") so errors point at the full key
     (e.g. 'system.geometry.plyy', also inside nested dataclasses).
     """
@@ -57,6 +60,9 @@ def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "") -> T:
         key = _full_key(where, e)
         owner = getattr(e, "object_type", None)
         owner = owner if owner is not None and is_dataclass(owner) else cfg_cls
+        moved = getattr(owner, "MOVED_KEYS", {}).get(str(e.key))
+        if moved:
+            raise ConfigError(f"config key '{key}' has moved: use '{moved}'") from None
         allowed = sorted(f.name for f in fields(owner))
         close = difflib.get_close_matches(str(e.key), allowed, n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""

@@ -422,7 +422,7 @@ def main(argv=None) -> dict:
         f"system.depth.device={args.device}", "system.depth.local_files_only=true",
         f"system.refine.cycles={args.cycles}", f"system.refine.t_schedule=[{','.join(map(str, args.t_schedule))}]",
         f"system.refine.m={args.m}", f"system.refine.iterations_per_cycle={args.iterations}",
-        f"system.localization.max_views={args.max_views}", f"system.refine.densify_every={args.densify_every}",
+        f"system.localization.max_views={args.max_views}", f"system.densify.every={args.densify_every}",
     ]
     report["schedule"] = {"cycles": args.cycles, "t_schedule": args.t_schedule, "m": args.m,
                           "iterations_per_cycle": args.iterations, "localization_views": args.max_views,

@@ -106,7 +106,7 @@ class PlacementRecordingIn2N(In2N):
 @pytest.mark.parametrize("system,config,steps", [
     ("placement-recording-regional-edit", "configs/demo.yaml",
      ["system.localization.max_views=8", "system.refine.cycles=2", "system.refine.iterations_per_cycle=3",
-      "system.refine.m=3", "system.refine.densify_every=2"]),
+      "system.refine.m=3", "system.densify.every=2"]),
     ("placement-recording-in2n", "configs/in2n.yaml", ["system.max_steps=4", "system.edit_every=2"]),
 ])
 def test_every_render_is_on_the_module_device_after_placement(tmp_path, system, config, steps, gpu):

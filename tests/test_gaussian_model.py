@@ -1,5 +1,5 @@
-"""GaussianModel: construction, structural ops with optimizers, densification, gradient masking,
-checkpoint resizing."""
+"""GaussianModel: construction, row operations with optimizers (geometry/rows.py), the densification
+strategy (geometry/strategy.py), gradient masking, checkpoint resizing."""
 import copy
 import math
 
@@ -8,7 +8,9 @@ import pytest
 import torch
 
 import gs_regional
-from gs_regional.geometry.gaussian_model import DEFAULT_LR, PARAM_NAMES, GaussianModel, knn_sq_dists
+from gs_regional.geometry import rows
+from gs_regional.geometry.gaussian_model import PARAM_NAMES, ROW_STATE, GaussianModel, LearningRates, knn_sq_dists
+from gs_regional.geometry.strategy import DensifyStrategy, add_gradient_stats
 from gs_regional.utils.sh import SH_C0
 
 
@@ -50,8 +52,9 @@ def check_optimizer_state(model, opt):
 
 def check_buffers(model):
     n = model.num_gaussians
-    for name in ("mask", "generation", "grad_accum", "grad_count", "max_radii2d"):
-        assert getattr(model, name).shape == (n,), name
+    for name in ROW_STATE:
+        if name != "extras":
+            assert getattr(model, name).shape == (n,), name
     assert model.extras.shape == (n, len(model.extra_names))
 
 
@@ -125,7 +128,7 @@ def test_prune_and_append_keep_parameters_and_fix_adam_state():
 
     keep = torch.ones(12, dtype=torch.bool)
     keep[[1, 5, 6]] = False
-    assert m.prune(keep, optimizer=opt) == 3
+    assert rows.keep(m, keep, optimizer=opt) == 3
     assert len(m) == 9
     check_optimizer_state(m, opt)
     check_buffers(m)
@@ -133,19 +136,19 @@ def test_prune_and_append_keep_parameters_and_fix_adam_state():
     adam_step(m, opt)
 
     other = make_model(4, seed=5)
-    added = m.append({n: getattr(other, n).detach() for n in PARAM_NAMES}, mask=True, generation=1, optimizer=opt)
+    added = rows.append(m, {n: getattr(other, n).detach() for n in PARAM_NAMES}, optimizer=opt, mask=True, generation=1)
     assert added == 4 and len(m) == 13
     check_optimizer_state(m, opt)
     check_buffers(m)
     assert not opt.state[m.quats]["exp_avg"][9:].any() and not opt.state[m.quats]["exp_avg_sq"][9:].any()
     assert m.mask.tolist() == [False] * 9 + [True] * 4 and m.generation[9:].tolist() == [1] * 4
     adam_step(m, opt)
-    m.append(other, optimizer=opt)  # from another model (its own mask/generation)
+    rows.append(m, other, optimizer=opt)  # from another model (its own mask/generation)
     adam_step(m, opt)
     check_optimizer_state(m, opt)
     assert [getattr(m, n) for n in PARAM_NAMES] == params_before
     with pytest.raises(ValueError, match="SH degree"):
-        m.append(make_model(2, degree=0))
+        rows.append(m, make_model(2, degree=0))
 
 
 def _densify_setup():
@@ -161,7 +164,7 @@ def _densify_setup():
     grad[0:4, 0] = 1.0
     grad[1, 0] = 2.0
     for _ in range(2):
-        m.add_densification_stats(grad, torch.ones(12, dtype=torch.bool))
+        add_gradient_stats(m, grad, torch.ones(12, dtype=torch.bool))
     return m
 
 
@@ -173,7 +176,7 @@ def test_densify_and_prune_with_adam():
     adam_step(m, opt)
     parent_scales = m.scales[2:4].detach().clone()
     parent_means = m.means[2:4].detach().clone()
-    out = m.densify_and_prune(grad_threshold=0.5, scene_extent=1.0, optimizer=opt)
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, scene_extent=1.0, optimizer=opt)
     assert out == {"cloned": 2, "split": 2, "pruned": 1}
     assert len(m) == 12 + 2 + 2 - 1  # +2 clones, +4 split children -2 parents, -1 faint
     check_optimizer_state(m, opt)
@@ -192,13 +195,20 @@ def test_densify_and_prune_with_adam():
 def test_densify_only_mask_and_budget():
     m = _densify_setup()
     m.mask[[1, 3]] = True  # 0 (clone) and 2 (split) and 4 (faint) are outside the edit
-    out = m.densify_and_prune(0.5, 1.0, only_mask=True)
+    m.set_trainable_mask("editable")
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0)
     assert out == {"cloned": 1, "split": 1, "pruned": 0}
     assert len(m) == 12 + 1 + 1
     assert m.opacities.min() < 0.01  # the faint unmasked Gaussian survives
 
     m = _densify_setup()
-    out = m.densify_and_prune(0.5, 1.0, max_gaussians=13)
+    m.mask[[1, 3]] = True
+    m.set_trainable_mask("editable")
+    out = DensifyStrategy(grad_threshold=0.5, only_trainable=False).densify_and_prune(m, 1.0)
+    assert out == {"cloned": 2, "split": 2, "pruned": 1}  # every Gaussian when told so
+
+    m = _densify_setup()
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0, max_gaussians=13)
     assert out["cloned"] + out["split"] == 1
     assert out["cloned"] == 1  # Gaussian 1 has the highest gradient
     assert len(m) <= 13
@@ -212,13 +222,93 @@ def test_densify_prunes_large_on_screen_and_batched_stats():
     grads = torch.zeros(2, 6, 2)
     grads[0, 0] = torch.tensor([3.0, 4.0])  # norm 5, in view 0 only
     vis = torch.tensor([[True] * 6, [True, False, True, True, True, True]])
-    m.add_densification_stats(grads, vis, radii=torch.tensor([[1.0, 99.0, 1, 1, 1, 1], [2.0, 500.0, 1, 1, 1, 1]]))
+    add_gradient_stats(m, grads, vis, radii=torch.tensor([[1.0, 99.0, 1, 1, 1, 1], [2.0, 500.0, 1, 1, 1, 1]]))
     assert m.grad_accum[0].item() == pytest.approx(5.0) and m.grad_count.tolist() == [2, 1, 2, 2, 2, 2]
     assert m.max_radii2d[1].item() == 99.0  # not visible in view 1
-    out = m.densify_and_prune(10.0, 1.0, max_screen_size=50)
+    strategy = DensifyStrategy(grad_threshold=10.0, max_screen_size=50)
+    assert strategy.densify_and_prune(copy.deepcopy(m), 1.0) == {"cloned": 0, "split": 0, "pruned": 0}
+    out = strategy.densify_and_prune(m, 1.0, prune_large=True)
     assert out == {"cloned": 0, "split": 0, "pruned": 1} and len(m) == 5
     with pytest.raises(ValueError, match="means2d_grad"):
-        m.add_densification_stats(torch.zeros(4, 2), torch.ones(4, dtype=torch.bool))
+        add_gradient_stats(m, torch.zeros(4, 2), torch.ones(4, dtype=torch.bool))
+
+
+def test_every_registered_row_buffer_follows_every_row_operation(monkeypatch):
+    """A per-row buffer added to ROW_STATE follows keep, append, duplicate, densification, select
+    and checkpoint resizing without any other change (the registry is the only list of them)."""
+    from gs_regional.geometry.gaussian_model import RowState
+
+    monkeypatch.setitem(ROW_STATE, "votes", RowState(torch.float32, -1.0, inherit=True))
+    m = _densify_setup()
+    assert m.votes.shape == (12,)
+    m.votes.copy_(torch.arange(12.0))
+    opt = make_adam(m)
+    adam_step(m, opt)
+    DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0, optimizer=opt)
+    # parents 0..11 minus the split 2, 3 and the faint 4; then clones of 0, 1 and children of 2, 3, 2, 3
+    assert m.votes.tolist() == [0, 1, 5, 6, 7, 8, 9, 10, 11, 0, 1, 2, 3, 2, 3]
+    assert m.source_index.tolist() == m.votes.long().tolist()  # the source rows travel the same way
+    rows.append(m, make_model(2, seed=3), optimizer=opt)
+    assert m.votes[-2:].tolist() == [-1, -1] and m.source_index[-2:].tolist() == [-1, -1]
+    check_optimizer_state(m, opt)
+    check_buffers(m)
+    assert m.select(torch.tensor([9, 15])).votes.tolist() == [0, -1]
+    small = make_model(3)
+    small.load_state_dict(m.state_dict())
+    assert torch.equal(small.votes, m.votes)
+
+
+def test_source_index_follows_rows_and_finds_the_source_region():
+    """Row positions change under densify and prune; source_index does not lose track of the
+    source rows, so the localized region of the source is found wherever its rows went."""
+    n = 12
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(4))
+    m = _densify_setup().select(perm)  # rows in a scattered order, as in a real file
+    assert m.source_index.tolist() == perm.tolist()  # select keeps where each row came from
+    m = m.select(torch.arange(n))
+    assert m.source_index.tolist() == perm.tolist()
+    fresh = make_model(n)
+    assert fresh.source_index.tolist() == list(range(n))  # a new model is its own source
+    region = torch.zeros(n, dtype=torch.bool)
+    region[[1, 2, 4, 7]] = True  # source rows: a clone, a split parent, a faint one, a quiet one
+    m.mask.copy_(region[m.source_index])
+    m.set_trainable_mask("editable")
+    rows.append(m, make_model(3, seed=2), mask=True, generation=1)  # Gaussians added by the edit
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0)
+    assert out == {"cloned": 1, "split": 1, "pruned": 1}
+    assert torch.equal(rows.source_rows(m, m.mask, n), region & (torch.arange(n) != 4))  # the faint one is gone
+    assert (m.source_index[m.generation == 1] == -1).all()
+    assert not torch.equal(m.mask[:n], region)  # what indexing by position would have used
+    with pytest.raises(ValueError, match="out of range"):
+        rows.source_rows(m, m.mask, 3)
+
+
+def test_densify_strategy_schedule_and_caps():
+    s = DensifyStrategy(start=100, stop=1000, every=100, opacity_reset_every=300)
+    assert [t for t in range(0, 1200, 50) if s.densifies_at(t)] == list(range(100, 1000, 100))
+    assert not s.densifies_at(900, last_step=900)  # the last step's new Gaussians would not be trained
+    assert [t for t in range(0, 1200, 100) if s.resets_opacity_at(t)] == [300, 600, 900]
+    assert s.collects_stats(999) and not s.collects_stats(1000)
+    assert not DensifyStrategy(enabled=False).collects_stats(0)
+    edit = DensifyStrategy(start=0, stop=None, every=50, max_gaussians=None, budget=20)
+    assert [t for t in range(100) if edit.densifies_at(t, last_step=99)] == [50]
+    assert edit.max_count(base_count=100) == 120 and DensifyStrategy(max_gaussians=None).max_count() is None
+    assert DensifyStrategy(max_gaussians=110, budget=20).max_count(base_count=100) == 110
+    with pytest.raises(ValueError, match="base_count"):
+        edit.max_count()
+    assert not s.prunes_large_at(400) and DensifyStrategy(max_screen_size=20, opacity_reset_every=300).prunes_large_at(301)
+    from gs_regional.config import ConfigError
+
+    with pytest.raises(ConfigError, match="system.densify.every"):
+        DensifyStrategy(every=0).check("system.densify")
+
+
+def test_refine_densifies_when_due_with_the_budget():
+    m = _densify_setup()
+    strategy = DensifyStrategy(start=0, stop=None, every=10, opacity_reset_every=0, max_gaussians=None, budget=1)
+    assert strategy.refine(m, 5, scene_extent=1.0, base_count=12) is None and len(m) == 12
+    out = strategy.refine(m, 10, scene_extent=1.0, base_count=12)
+    assert out == {"cloned": 1, "split": 0, "pruned": 1} and len(m) == 12  # one new, one faint pruned
 
 
 def test_reset_opacity_clamps_and_zeroes_state():
@@ -227,12 +317,12 @@ def test_reset_opacity_clamps_and_zeroes_state():
     adam_step(m, opt)
     m.mask[:4] = True
     before = m.opacities.detach().clone()
-    m.reset_opacity(0.01, optimizer=opt, only_mask=True)
+    rows.reset_opacity(m, 0.01, optimizer=opt, rows=m.mask.clone())
     assert (m.opacities[:4] <= 0.01 + 1e-6).all()
     torch.testing.assert_close(m.opacities[4:].detach(), before[4:])
     st = opt.state[m.opacity_logits]
     assert not st["exp_avg"][:4].any() and st["exp_avg"][4:].all()
-    m.reset_opacity(optimizer=opt)
+    rows.reset_opacity(m, optimizer=opt)
     assert (m.opacities <= 0.01 + 1e-6).all()
 
 
@@ -242,18 +332,18 @@ def _row_has_grad(p):
 
 def test_gradient_masking_covers_every_parameter_and_survives_changes():
     m = make_model(10, degree=1)
-    rows = torch.zeros(10, dtype=torch.bool)
-    rows[[0, 3, 4]] = True
-    m.set_trainable_mask(rows)
+    trainable = torch.zeros(10, dtype=torch.bool)
+    trainable[[0, 3, 4]] = True
+    m.set_trainable_mask(trainable)
     full_loss(m).backward()
     for name in PARAM_NAMES:
-        assert torch.equal(_row_has_grad(getattr(m, name)), rows), name
+        assert torch.equal(_row_has_grad(getattr(m, name)), trainable), name
 
     # explicit rows follow prune and append (new rows trainable)
     keep = torch.ones(10, dtype=torch.bool)
     keep[3] = False
-    m.prune(keep)
-    m.append(make_model(2, seed=9))
+    rows.keep(m, keep)
+    rows.append(m, make_model(2, seed=9))
     full_loss(m).backward()
     expected = torch.tensor([True, False, False, True] + [False] * 5 + [True, True])  # old 4 is now 3
     for name in PARAM_NAMES:
@@ -264,7 +354,7 @@ def test_gradient_masking_covers_every_parameter_and_survives_changes():
     m.set_trainable_mask("editable")
     m.mask.zero_()
     m.mask[1] = True
-    m.append(make_model(3, seed=4), generation=1)
+    rows.append(m, make_model(3, seed=4), generation=1)
     opt = make_adam(m)
     out = copy.deepcopy(m)  # hooks are re-registered on the copy's parameters
     for model in (m, out):
@@ -291,7 +381,7 @@ def test_state_dict_load_resizes_and_keeps_parameters():
     big = make_model(10, degree=1)
     big.mask[2] = True
     big.generation[7] = 1
-    big.add_densification_stats(torch.ones(10, 2), torch.ones(10, dtype=torch.bool))
+    add_gradient_stats(big, torch.ones(10, 2), torch.ones(10, dtype=torch.bool))
     big.set_trainable_mask("editable")
     state = big.state_dict()
 
@@ -314,8 +404,10 @@ def test_optimizer_param_groups():
     groups = m.optimizer_param_groups({"sh_dc": 0.01}, spatial_scale=5.0)
     by_name = {g["name"]: g for g in groups}
     assert set(by_name) == set(PARAM_NAMES)
-    assert by_name["means"]["lr"] == pytest.approx(DEFAULT_LR["means"] * 5.0)
+    assert by_name["means"]["lr"] == pytest.approx(LearningRates().means * 5.0)
     assert by_name["sh_dc"]["lr"] == 0.01 and by_name["sh_rest"]["lr"] == pytest.approx(2.5e-3 / 20)
     assert by_name["quats"]["params"][0] is m.quats
     with pytest.raises(ValueError, match="colour"):
         m.optimizer_param_groups({"colour": 1.0})
+    lr = LearningRates(quats=0.5)  # the dataclass the systems' `system.lr` parses into
+    assert {g["name"]: g["lr"] for g in m.optimizer_param_groups(lr)}["quats"] == 0.5

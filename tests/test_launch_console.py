@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SMALL_DEMO = [
     "data.n_cameras=24", "data.width=64", "data.height=64",
     "system.eval.turntable_frames=4", "system.eval.max_test_views=3", "system.localization.max_views=12",
-    "system.refine.iterations_per_cycle=10", "system.refine.m=5", "system.refine.densify_every=5",
+    "system.refine.iterations_per_cycle=10", "system.refine.m=5", "system.densify.every=5",
 ]
 
 

@@ -29,7 +29,7 @@ COMMON = [
 ]
 SMALL = COMMON + [
     "system.localization.max_views=12",
-    "system.refine.iterations_per_cycle=30", "system.refine.m=5", "system.refine.densify_every=10",
+    "system.refine.iterations_per_cycle=30", "system.refine.m=5", "system.densify.every=10",
 ]
 
 
@@ -273,3 +273,89 @@ def test_simulator_on_a_scene_without_ground_truth_says_what_to_do(tmp_path, cap
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "simulated-editor is a simulator" in err and "data_type: synthetic-scene" in err, err
+
+
+# ----- rows of the region scattered through the file (issue 10, "Row misalignment") -----------------
+import dataclasses  # noqa: E402
+
+from gs_regional.sim.scene import SyntheticDataModule  # noqa: E402
+from gs_regional.edit.localize import render_selection  # noqa: E402
+from gs_regional.systems.regional_edit import RegionalEdit  # noqa: E402
+
+
+class ShuffledRowsScene(SyntheticDataModule):
+    """The synthetic scene with its source rows shuffled, as in a real splat where the region's
+    Gaussians are scattered through the file (the truth's per-row arrays shuffled alike)."""
+
+    def setup(self, stage=None):
+        fresh = self.scene is None
+        super().setup(stage)
+        if fresh:
+            gt = self.scene.ground_truth
+            perm = torch.randperm(len(gt.source), generator=torch.Generator().manual_seed(7))
+            self.scene.ground_truth = dataclasses.replace(
+                gt, source=gt.source.select(perm), region=gt.region[perm],
+                related=None if gt.related is None else gt.related[perm],
+            )
+
+
+class RowCheckedRegionalEdit(RegionalEdit):
+    """Checks, at every composite, that the region rendered from the source is the localized one."""
+
+    checked = []  # (cycle, composite region == render of the localized source rows)
+    rows_moved = []
+
+    def run_localize(self):
+        super().run_localize()
+        self.localized = self.geometry.mask.clone()  # rows are still the source's here
+
+    def composite(self, index, edited):
+        cam = self.scene.cameras[index].to(self.device)
+        expected = render_selection(self.source_model, self.renderer, cam, self.localized)
+        RowCheckedRegionalEdit.checked.append((self.targets_cycle + 1, torch.equal(self.source_region(index), expected)))
+        return super().composite(index, edited)
+
+    def on_train_end(self):
+        n = self.n_source
+        RowCheckedRegionalEdit.rows_moved.append(not torch.equal(self.geometry.source_index[:n].cpu(), torch.arange(n)))
+        super().on_train_end()
+
+
+@pytest.fixture
+def row_check_components(monkeypatch):
+    """The two classes above, registered for one test only (the registry is shared by all tests)."""
+    from gs_regional import registry
+
+    for name, cls in (("shuffled-rows-scene", ShuffledRowsScene), ("row-checked-regional-edit", RowCheckedRegionalEdit)):
+        monkeypatch.setitem(registry._REGISTRY, name, cls)
+        monkeypatch.setattr(cls, "registered_name", name, raising=False)
+
+
+@pytest.mark.parametrize("initialize,overrides", [
+    # every densified Gaussian is split (its row removed, the rows after it move up)
+    (True, ["system.densify.percent_dense=0", "system.densify.grad_threshold=0.00002"]),
+    # every editable Gaussian is pruned at the first densification: fewer rows than the source has
+    (False, ["system.densify.min_opacity=0.98"]),
+])
+def test_scattered_region_rows_stay_tracked_through_densify_and_prune(tmp_path, row_check_components, initialize, overrides):
+    """With the region's rows scattered through the scene and densification moving rows during
+    refinement, every composite uses the localized region of the source (row positions would not:
+    with initialize=false and pruning they even run out of rows, the crash seen on a real splat)."""
+    RowCheckedRegionalEdit.checked.clear()
+    RowCheckedRegionalEdit.rows_moved.clear()
+    trial = launch(tmp_path, "scattered", "configs/demo.yaml", *SMALL, "data_type=shuffled-rows-scene",
+                   "system_type=row-checked-regional-edit", f"system.initialize={str(initialize).lower()}",
+                   "system.densify.every=5", *overrides)
+    m = metrics_of(trial)
+    assert m["count_densified"] + m["count_pruned"] > 0
+    assert RowCheckedRegionalEdit.rows_moved == [True]  # densify/prune moved source rows
+    later = [ok for cycle, ok in RowCheckedRegionalEdit.checked if cycle > 0]  # after densification
+    assert later and all(ok for _, ok in RowCheckedRegionalEdit.checked)
+    assert m["mask_iou"] >= 0.7  # the truth's region is looked up through the same source rows
+
+
+def test_moved_densify_keys_name_their_new_place():
+    from gs_regional.config import ConfigError, parse_structured
+
+    with pytest.raises(ConfigError, match="system.refine.densify_every' has moved: use 'system.densify.every'"):
+        parse_structured(RegionalEdit.Config, {"refine": {"densify_every": 50}}, where="system")

@@ -1,4 +1,4 @@
-"""The `gaussian-model` geometry: a set of 3D Gaussians as an nn.Module.
+"""The `gaussian-model` geometry: a set of 3D Gaussians as an nn.Module (parameters and per-row state).
 
 Parameter layout (N Gaussians, SH degree D, K = (D+1)^2 coefficients):
   means          (N, 3)
@@ -7,18 +7,14 @@ Parameter layout (N Gaussians, SH degree D, K = (D+1)^2 coefficients):
   opacity_logits (N,)    opacity = sigmoid(logit)
   sh_dc          (N, 3)     SH coefficient 0 per colour channel
   sh_rest        (N, K-1, 3) SH coefficients 1..K-1 per channel (empty when D = 0)
-Buffers (all resized with the parameters):
-  mask           (N,) bool  selected for editing
-  generation     (N,) long  0 = original, >0 = added by an edit
-  grad_accum     (N,) float densification statistics: summed view-space gradient norms,
-  grad_count     (N,) float   the number of views they were summed over,
-  max_radii2d    (N,) float   and the largest screen radius seen
-  extras         (N, E) float64  extra PLY vertex properties (names in `extra_names`; non-zero
-                 normals are kept here as nx, ny, nz), 0 for new Gaussians
+Per-row state: the buffers listed in `ROW_STATE` (edit mask, generation, source index, trainable
+rows, densification statistics, extra PLY properties), one row per Gaussian.
 
-Structural operations (prune, append, densify, checkpoint loading) change the number of rows by
-assigning `param.data`, so the nn.Parameter objects never change and an optimizer built on them
-stays valid; pass the optimizer to have its per-row state (Adam moments) resized along.
+Changing the number or order of rows is the job of `gs_regional.geometry.rows` (keep, append,
+duplicate), which updates every parameter, every buffer of `ROW_STATE` and the optimizer's per-row
+state together; `gs_regional.geometry.strategy.DensifyStrategy` decides what to clone, split and
+prune. Parameters are resized through `param.data`, so the nn.Parameter objects never change and an
+optimizer built on them stays valid.
 """
 from __future__ import annotations
 
@@ -32,153 +28,59 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from gs_regional.geometry.knn import knn_sq_dists
 from gs_regional.geometry.ply import PlyGaussians, read_ply, write_ply
 from gs_regional.registry import register
 from gs_regional.utils.base import BaseModule
 from gs_regional.utils.io import check_not_overwriting
-from gs_regional.utils.rotations import quat_to_rotmat
 from gs_regional.utils.sh import rgb_to_sh
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-ROW_BUFFERS = ("mask", "generation", "grad_accum", "grad_count", "max_radii2d", "extras")
 EDITABLE = "editable"  # trainable-row rule: mask | generation > 0, evaluated at backward time
+_ROWS = "rows"  # trainable-row rule: the `trainable` buffer
 
-# Learning rates of the original 3DGS trainer; `means` is multiplied by the scene extent.
-DEFAULT_LR = {
-    "means": 1.6e-4,
-    "quats": 1e-3,
-    "log_scales": 5e-3,
-    "opacity_logits": 0.05,
-    "sh_dc": 2.5e-3,
-    "sh_rest": 2.5e-3 / 20.0,
+
+@dataclass(frozen=True)
+class RowState:
+    """How one per-row buffer behaves when rows are added (see gs_regional.geometry.rows)."""
+
+    dtype: torch.dtype
+    fill: Union[bool, int, float]  # value of new Gaussians that are given none (appended rows)
+    inherit: bool  # clone/split children copy their parent's value (else they get `fill`)
+    columns: Optional[str] = None  # (N, len(model.<columns>)) instead of (N,)
+
+
+# Every per-row buffer of a GaussianModel. The row operations go through this registry, so a buffer
+# added here follows every prune, append and densification (and checkpoint resizing) by itself.
+ROW_STATE: Dict[str, RowState] = {
+    "mask": RowState(torch.bool, False, inherit=True),  # selected for editing
+    "generation": RowState(torch.long, 0, inherit=True),  # 0 = source scene, > 0 = added by an edit
+    # The row of the source scene this Gaussian is, or descends from by cloning/splitting; -1 for
+    # Gaussians added later (from depth, or appended from elsewhere) and their children. A model
+    # built from a file, tensors or points is its own source: source_index = 0..N-1.
+    "source_index": RowState(torch.long, -1, inherit=True),
+    "trainable": RowState(torch.bool, True, inherit=True),  # explicit trainable rows (set_trainable_mask)
+    # densification statistics: summed view-space gradient norms, the number of views they were
+    # summed over, the largest screen radius seen; new Gaussians start from zero
+    "grad_accum": RowState(torch.float32, 0.0, inherit=False),
+    "grad_count": RowState(torch.float32, 0.0, inherit=False),
+    "max_radii2d": RowState(torch.float32, 0.0, inherit=False),
+    # extra PLY vertex properties (names in `extra_names`; non-zero normals are kept here as nx, ny,
+    # nz); they describe the trained Gaussians, so new ones (children included) get 0
+    "extras": RowState(torch.float64, 0.0, inherit=False, columns="extra_names"),
 }
 
-Optimizers = Union[None, torch.optim.Optimizer, List[torch.optim.Optimizer]]
 
+@dataclass
+class LearningRates:
+    """Adam learning rates per parameter, those of the original 3DGS trainer."""
 
-def _morton_order(points: torch.Tensor) -> torch.Tensor:
-    """Permutation sorting points along a Z-order curve (10 bits per axis)."""
-    lo, hi = points.min(0).values, points.max(0).values
-    q = ((points - lo) / (hi - lo).clamp_min(1e-12) * 1023).long().clamp(0, 1023)
-
-    def spread(v: torch.Tensor) -> torch.Tensor:  # insert two zero bits between the bits of v
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2)
-    return torch.argsort(code, stable=True)
-
-
-def knn_sq_dists(points: torch.Tensor, k: int = 3, window: int = 16, max_pairs: int = 1 << 20) -> torch.Tensor:
-    """Exact squared distances (N, min(k, N-1)) from each point to its k nearest other points.
-
-    No O(N^2) matrix: at most ~`max_pairs` candidate distances are held at a time.
-    1. Neighbours along a Z-order curve give each point an upper bound u on its k-th distance.
-    2. Points are grouped by the power of two h >= sqrt(u); for each group a grid of cell side h
-       is built and each query only looks at the 3x3x3 cells around it, which hold every point
-       within distance h, hence its k nearest.
-    """
-    n = points.shape[0]
-    k = min(k, n - 1)
-    if k <= 0:
-        return points.new_zeros((n, 0), dtype=torch.float32)
-    dev = points.device
-    p = points.float()
-    p = p - p.mean(0)
-
-    order = _morton_order(p)
-    ps = p[order]
-    w = max(window, k)
-    d = torch.full((n, 2 * w), math.inf, device=dev)
-    for off in range(1, min(w, n - 1) + 1):
-        dd = ((ps[off:] - ps[:-off]) ** 2).sum(1)
-        d[:-off, off - 1] = dd  # the point `off` places later
-        d[off:, w + off - 1] = dd  # the point `off` places earlier
-    ub = torch.empty(n, device=dev)
-    ub[order] = d.topk(k, dim=1, largest=False).values[:, -1]
-
-    extent = float((p.max(0).values - p.min(0).values).max().clamp_min(1e-12))
-    lmin = math.floor(math.log2(extent)) - 19  # <= 2^20 cells per axis: keys < 2^61 fit in int64
-    level = torch.ceil(torch.log2(ub.sqrt() * 1.001 + 1e-30)).clamp_min(lmin).long()
-    offsets = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=dev)] * 3, indexing="ij"), -1).reshape(27, 3)
-    out = torch.empty((n, k), device=dev)
-    for lv in torch.unique(level).tolist():
-        h = 2.0**lv
-        queries = (level == lv).nonzero().squeeze(1)
-        # Only points near these queries can be their neighbours.
-        lo, hi = p[queries].min(0).values - h, p[queries].max(0).values + h
-        pts = ((p >= lo) & (p <= hi)).all(1).nonzero().squeeze(1)
-        cell = torch.floor(p[pts] / h).long()
-        cmin = cell.min(0).values - 1  # neighbours of the extreme cells stay >= 0
-        cell -= cmin
-        dims = cell.max(0).values + 2
-
-        def key(c: torch.Tensor) -> torch.Tensor:
-            return (c[..., 0] * dims[1] + c[..., 1]) * dims[2] + c[..., 2]
-
-        skey, sorder = torch.sort(key(cell))
-        sorted_pts = pts[sorder]
-        uniq, counts = torch.unique_consecutive(skey, return_counts=True)
-        starts = torch.cumsum(counts, 0) - counts
-        qcell = torch.floor(p[queries] / h).long() - cmin
-        nkey = key(qcell[:, None, :] + offsets[None])  # (Q, 27)
-        pos = torch.searchsorted(uniq, nkey).clamp_max(uniq.numel() - 1)
-        cnt = torch.where(uniq[pos] == nkey, counts[pos], 0)
-        st = starts[pos]
-        total, srt = torch.sort(cnt.sum(1))  # similar sizes together: tight padded matrices
-        queries, cnt, st = queries[srt], cnt[srt], st[srt]
-        q0 = 0
-        while q0 < queries.numel():
-            rows = torch.arange(1, queries.numel() - q0 + 1, device=dev) * total[q0:]
-            q1 = q0 + max(1, int(torch.searchsorted(rows, max_pairs, right=True)))
-            qi, c_flat, s_flat = queries[q0:q1], cnt[q0:q1].reshape(-1), st[q0:q1].reshape(-1)
-            m = int(c_flat.sum())
-            grp = torch.repeat_interleave(torch.arange(c_flat.numel(), device=dev), c_flat)
-            first = torch.cumsum(c_flat, 0) - c_flat
-            cand = sorted_pts[s_flat[grp] + torch.arange(m, device=dev) - first[grp]]
-            owner = grp // 27
-            dist = ((p[qi[owner]] - p[cand]) ** 2).sum(1).masked_fill(cand == qi[owner], math.inf)
-            tot = total[q0:q1]
-            col = torch.arange(m, device=dev) - (torch.cumsum(tot, 0) - tot)[owner]
-            mat = torch.full((qi.numel(), int(tot.max())), math.inf, device=dev)
-            mat[owner, col] = dist
-            out[qi] = mat.topk(k, dim=1, largest=False).values
-            q0 = q1
-    return out
-
-
-def _inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
-    return torch.log(x / (1 - x))
-
-
-def _unwrap_optimizers(optimizer: Optimizers) -> List[torch.optim.Optimizer]:
-    opts = optimizer if isinstance(optimizer, (list, tuple)) else [optimizer]
-    out = []
-    for opt in opts:
-        if opt is None:
-            continue
-        if not isinstance(opt, torch.optim.Optimizer) and hasattr(opt, "optimizer"):
-            opt = opt.optimizer  # Lightning's LightningOptimizer wrapper
-        out.append(opt)
-    return out
-
-
-def _edit_optimizer_rows(optimizer: Optimizers, param: nn.Parameter, fn) -> None:
-    """Apply `fn` to every per-row state tensor (e.g. Adam's exp_avg) of `param`.
-
-    Must run before `param.data` is resized: a state tensor is per-row when its first dimension
-    equals the parameter's current row count (Adam's scalar `step` is left alone).
-    """
-    n = param.shape[0]
-    for opt in _unwrap_optimizers(optimizer):
-        state = opt.state.get(param)
-        if not state:
-            continue
-        for key, value in list(state.items()):
-            if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == n and value.shape == param.shape:
-                state[key] = fn(value)
+    means: float = 1.6e-4  # times the scene extent
+    quats: float = 1e-3
+    log_scales: float = 5e-3
+    opacity_logits: float = 0.05
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4  # sh_dc / 20
 
 
 def _degree_from_rest(k_minus_1: int) -> int:
@@ -207,16 +109,13 @@ class GaussianModel(BaseModule):
         self.opacity_logits = nn.Parameter(torch.zeros(n))
         self.sh_dc = nn.Parameter(torch.zeros(n, 3))
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
-        self.register_buffer("mask", torch.zeros(n, dtype=torch.bool))
-        self.register_buffer("generation", torch.zeros(n, dtype=torch.long))
-        self.register_buffer("grad_accum", torch.zeros(n))
-        self.register_buffer("grad_count", torch.zeros(n))
-        self.register_buffer("max_radii2d", torch.zeros(n))
-        self.register_buffer("extras", torch.zeros(n, 0, dtype=torch.float64))
         self.extra_names: List[str] = []
         self.extra_dtypes: List[str] = []  # numpy dtype strings, to write extras back unchanged
+        for name in ROW_STATE:
+            self.register_buffer(name, self.new_row_state(name, n))
+        self.source_index = torch.arange(n)  # a new model is its own source
         self.source_path: Optional[str] = None  # the PLY this model was loaded from
-        self._trainable: Union[None, str, torch.Tensor] = None
+        self._trainable_rule: Optional[str] = None  # None, EDITABLE or _ROWS (see set_trainable_mask)
         self._grad_hooks: list = []
         if self.cfg.ply:
             self.load_ply(self.cfg.ply, drop_nonfinite=self.cfg.drop_nonfinite)
@@ -250,6 +149,12 @@ class GaussianModel(BaseModule):
         """(N,) bool: Gaussians an edit may change, selected (mask) or added (generation > 0)."""
         return self.mask | (self.generation > 0)
 
+    def mark_as_source(self) -> None:
+        """Make this model the source scene that later rows are tracked against: row i gets
+        source_index i (a model built from a file, tensors or points already starts so; a copy
+        made with `select` keeps the source rows of the model it was taken from)."""
+        self.source_index = torch.arange(self.num_gaussians, device=self.means.device)
+
     def extra_repr(self) -> str:
         return f"num_gaussians={self.num_gaussians}, sh_degree={self.sh_degree}, masked={int(self.mask.sum())}"
 
@@ -261,14 +166,33 @@ class GaussianModel(BaseModule):
         other.extra_names, other.extra_dtypes = list(self.extra_names), list(self.extra_dtypes)
         return other
 
-    def _set_rows(
-        self,
-        params: Mapping[str, torch.Tensor],
-        mask: Optional[torch.Tensor] = None,
-        generation: Optional[torch.Tensor] = None,
-        extras: Optional[torch.Tensor] = None,
-    ) -> None:
-        """Replace every row (any N, any SH degree) keeping the Parameter objects."""
+    def row_state_shape(self, name: str, n: int) -> tuple:
+        columns = ROW_STATE[name].columns
+        return (n,) if columns is None else (n, len(getattr(self, columns)))
+
+    def new_row_state(self, name: str, n: int, value=None, device=None) -> torch.Tensor:
+        """The per-row buffer `name` for n rows: `value` (a scalar or n rows) or the registry's fill."""
+        spec = ROW_STATE[name]
+        shape = self.row_state_shape(name, n)
+        device = self.means.device if device is None else device
+        if value is None:
+            return torch.full(shape, spec.fill, dtype=spec.dtype, device=device)
+        t = torch.as_tensor(value, device=device).to(spec.dtype)
+        if t.dim() == 0:
+            return t.expand(shape).clone()
+        if t.numel() != math.prod(shape):
+            raise ValueError(f"GaussianModel: '{name}' for {n} Gaussians must have shape {shape}, got {tuple(t.shape)}")
+        return t.reshape(shape).clone()
+
+    def _set_rows(self, params: Mapping[str, torch.Tensor], **state: Optional[torch.Tensor]) -> None:
+        """Replace every row (any N, any SH degree) keeping the Parameter objects.
+
+        `state` gives per-row buffers by name (see ROW_STATE); the others get their fill value, and
+        `source_index` 0..N-1 (a model built from scratch is its own source).
+        """
+        unknown = sorted(set(state) - set(ROW_STATE))
+        if unknown:
+            raise ValueError(f"GaussianModel: unknown per-row state {unknown}; known: {list(ROW_STATE)}")
         means = params["means"]
         n, dev = means.shape[0], means.device
         for name in PARAM_NAMES:
@@ -276,17 +200,10 @@ class GaussianModel(BaseModule):
             p.data = params[name].detach().to(device=dev, dtype=p.dtype).clone()
             p.grad = None
         self.sh_degree = _degree_from_rest(self.sh_rest.shape[1])
-        self.mask = torch.zeros(n, dtype=torch.bool, device=dev) if mask is None else mask.to(dev, torch.bool).clone()
-        self.generation = (
-            torch.zeros(n, dtype=torch.long, device=dev) if generation is None else generation.to(dev, torch.long).clone()
-        )
-        self.grad_accum = torch.zeros(n, device=dev)
-        self.grad_count = torch.zeros(n, device=dev)
-        self.max_radii2d = torch.zeros(n, device=dev)
-        e = len(self.extra_names)
-        self.extras = (
-            torch.zeros(n, e, dtype=torch.float64, device=dev) if extras is None else extras.to(dev, torch.float64).clone()
-        )
+        if state.get("source_index") is None:
+            state["source_index"] = torch.arange(n, device=dev)
+        for name in ROW_STATE:
+            setattr(self, name, self.new_row_state(name, n, state.get(name), device=dev))
         self._check_rows()
 
     def _check_rows(self) -> None:
@@ -294,8 +211,8 @@ class GaussianModel(BaseModule):
         k1 = (self.sh_degree + 1) ** 2 - 1
         expected = {
             "means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,),
-            "sh_dc": (n, 3), "sh_rest": (n, k1, 3), "mask": (n,), "generation": (n,),
-            "grad_accum": (n,), "grad_count": (n,), "max_radii2d": (n,), "extras": (n, len(self.extra_names)),
+            "sh_dc": (n, 3), "sh_rest": (n, k1, 3),
+            **{name: self.row_state_shape(name, n) for name in ROW_STATE},
         }
         for name, shape in expected.items():
             got = tuple(getattr(self, name).shape)
@@ -469,18 +386,14 @@ class GaussianModel(BaseModule):
         return model
 
     def select(self, index_or_bool) -> "GaussianModel":
-        """A detached copy holding the selected rows (bool mask or indices), e.g. for mask.ply."""
+        """A detached copy holding the selected rows (bool mask or indices) and all their per-row
+        state, e.g. for mask.ply."""
         idx = self._as_index(index_or_bool, "select")
         other = self._empty_like()
         other._set_rows(
             {name: getattr(self, name).detach()[idx] for name in PARAM_NAMES},
-            mask=self.mask[idx],
-            generation=self.generation[idx],
-            extras=self.extras[idx],
+            **{name: getattr(self, name)[idx] for name in ROW_STATE},
         )
-        other.grad_accum = self.grad_accum[idx].clone()
-        other.grad_count = self.grad_count[idx].clone()
-        other.max_radii2d = self.max_radii2d[idx].clone()
         return other
 
     def _as_index(self, index_or_bool, where: str) -> torch.Tensor:
@@ -494,251 +407,44 @@ class GaussianModel(BaseModule):
             raise IndexError(f"{where}: index out of range for {self.num_gaussians} Gaussians")
         return idx
 
-    # ------------------------------------------------------------------ structural operations
-    def prune(self, keep: torch.Tensor, optimizer: Optimizers = None) -> int:
-        """Keep only the rows where `keep` is True; returns how many were removed."""
-        keep = torch.as_tensor(keep, device=self.means.device)
-        if keep.dtype != torch.bool or tuple(keep.shape) != (self.num_gaussians,):
-            raise ValueError(f"prune: keep must be a bool tensor of shape ({self.num_gaussians},), got {keep.dtype} {tuple(keep.shape)}")
-        idx = keep.nonzero().squeeze(1)
-        removed = self.num_gaussians - idx.numel()
-        with torch.no_grad():
-            for name in PARAM_NAMES:
-                p = getattr(self, name)
-                _edit_optimizer_rows(optimizer, p, lambda v: v[idx].clone())
-                p.data = p.data[idx].clone()
-                p.grad = None
-            for name in ROW_BUFFERS:
-                setattr(self, name, getattr(self, name)[idx].clone())
-            if torch.is_tensor(self._trainable):
-                self._trainable = self._trainable.to(idx.device)[idx]
-        return removed
-
-    def append(
-        self,
-        params: Union[Mapping[str, torch.Tensor], "GaussianModel"],
-        mask: Union[None, bool, torch.Tensor] = None,
-        generation: Union[None, int, torch.Tensor] = None,
-        optimizer: Optimizers = None,
-        trainable: Union[None, bool, torch.Tensor] = None,
-    ) -> int:
-        """Add Gaussians at the end; returns how many were added.
-
-        `params` is a dict of the six parameter tensors (sh_rest optional: zeros) or another
-        GaussianModel of the same SH degree (its mask, generation and matching extras are taken
-        unless `mask`/`generation` are given). New rows get zero densification statistics, zero
-        extras, and zero optimizer state. With an explicit trainable-row tensor set (see
-        `set_trainable_mask`) new rows are trainable unless `trainable` says otherwise.
-        """
-        dev = self.means.device
-        if isinstance(params, GaussianModel):
-            other = params
-            if other.sh_degree != self.sh_degree:
-                raise ValueError(f"append: SH degree {other.sh_degree} does not match the model's {self.sh_degree}")
-            new = {name: getattr(other, name).detach() for name in PARAM_NAMES}
-            mask = other.mask if mask is None else mask
-            generation = other.generation if generation is None else generation
-            new_extras = torch.zeros(other.num_gaussians, len(self.extra_names), dtype=torch.float64, device=dev)
-            for i, name in enumerate(self.extra_names):
-                if name in other.extra_names:
-                    new_extras[:, i] = other.extras[:, other.extra_names.index(name)].to(dev)
-        else:
-            new = self._check_new_params(params, self.sh_degree, "append")
-            new_extras = None
-        m = new["means"].shape[0]
-        if new_extras is None:
-            new_extras = torch.zeros(m, len(self.extra_names), dtype=torch.float64, device=dev)
-
-        def rows(value, dtype, default):
-            if value is None:
-                value = default
-            t = torch.as_tensor(value, device=dev).to(dtype)
-            return t.expand(m).clone() if t.dim() == 0 else t.reshape(m).clone()
-
-        buffers = {
-            "mask": rows(mask, torch.bool, False),
-            "generation": rows(generation, torch.long, 0),
-            "grad_accum": torch.zeros(m, device=dev),
-            "grad_count": torch.zeros(m, device=dev),
-            "max_radii2d": torch.zeros(m, device=dev),
-            "extras": new_extras,
-        }
-        with torch.no_grad():
-            for name in PARAM_NAMES:
-                p = getattr(self, name)
-                extra = new[name].detach().to(device=dev, dtype=p.dtype)
-                _edit_optimizer_rows(
-                    optimizer, p, lambda v: torch.cat([v, v.new_zeros((m,) + tuple(v.shape[1:]))], 0)
-                )
-                p.data = torch.cat([p.data, extra], 0)
-                p.grad = None
-            for name in ROW_BUFFERS:
-                old = getattr(self, name)
-                setattr(self, name, torch.cat([old, buffers[name].to(old.dtype)], 0))
-            if torch.is_tensor(self._trainable):
-                self._trainable = torch.cat([self._trainable.to(dev), rows(trainable, torch.bool, True)])
-        return m
-
-    # ------------------------------------------------------------------ densification (3DGS)
-    @torch.no_grad()
-    def add_densification_stats(
-        self, means2d_grad: torch.Tensor, visible: torch.Tensor, radii: Optional[torch.Tensor] = None
-    ) -> None:
-        """Accumulate the view-space positional gradient norm of visible Gaussians.
-
-        `means2d_grad` (N, 2) or (V, N, 2) is the gradient of the renderer's `means2d` (in the
-        renderer's units; the 3DGS threshold 2e-4 assumes NDC-scaled gradients), `visible` (N,)
-        or (V, N) bool, `radii` (N,) or (V, N) screen radii for the max-screen-size prune.
-        """
-        n = self.num_gaussians
-        if means2d_grad is None:
-            raise ValueError("add_densification_stats: means2d has no gradient (call backward first; "
-                             "the renderer must retain_grad() on means2d)")
-        g = means2d_grad.detach()
-        g = g[None] if g.dim() == 2 else g
-        if g.dim() != 3 or g.shape[1] != n or g.shape[2] < 2:
-            raise ValueError(f"add_densification_stats: means2d_grad has shape {tuple(means2d_grad.shape)}, expected ({n}, 2) or (V, {n}, 2)")
-        vis = torch.as_tensor(visible, device=g.device).bool()
-        vis = vis.expand(g.shape[0], n) if vis.dim() == 1 else vis
-        if tuple(vis.shape) != (g.shape[0], n):
-            raise ValueError(f"add_densification_stats: visible has shape {tuple(visible.shape)}, expected ({n},) or ({g.shape[0]}, {n})")
-        norms = g[..., :2].norm(dim=-1) * vis
-        self.grad_accum += norms.sum(0).to(self.grad_accum.dtype)
-        self.grad_count += vis.sum(0).to(self.grad_count.dtype)
-        if radii is not None:
-            r = radii.detach().to(self.max_radii2d.dtype)
-            r = r[None] if r.dim() == 1 else r
-            self.max_radii2d = torch.maximum(self.max_radii2d, (r * vis).max(0).values)
-
-    def reset_densification_stats(self) -> None:
-        self.grad_accum.zero_()
-        self.grad_count.zero_()
-        self.max_radii2d.zero_()
-
-    def densify_and_prune(
-        self,
-        grad_threshold: float,
-        scene_extent: float,
-        percent_dense: float = 0.01,
-        min_opacity: float = 0.005,
-        max_screen_size: Optional[float] = None,
-        radii: Optional[torch.Tensor] = None,
-        only_mask: bool = False,
-        max_gaussians: Optional[int] = None,
-        optimizer: Optimizers = None,
-        generator: Optional[torch.Generator] = None,
-    ) -> Dict[str, int]:
-        """One densification step of the original 3DGS; returns dict(cloned, split, pruned).
-
-        Gaussians whose mean view-space gradient >= grad_threshold are cloned when small
-        (max scale <= percent_dense * scene_extent) or split into 2 samples with scale / 1.6
-        when large. New Gaussians inherit mask and generation. Then Gaussians with opacity
-        < min_opacity are pruned and, when max_screen_size is set, those whose screen radius
-        (tracked maximum, or `radii`) exceeds it or whose world size exceeds 0.1 * scene_extent.
-        `only_mask`: only editable rows (mask | generation > 0) are densified or pruned.
-        `max_gaussians`: at most max_gaussians - N new Gaussians, highest gradients first.
-        Statistics are reset afterwards, as in the original trainer.
-        """
-        n0 = self.num_gaussians
-        dev = self.means.device
-        with torch.no_grad():
-            grads = self.grad_accum / self.grad_count
-            grads = torch.nan_to_num(grads, nan=0.0, posinf=0.0)
-            allowed = self.editable_rows() if only_mask else torch.ones(n0, dtype=torch.bool, device=dev)
-            max_scale = self.scales.max(dim=1).values if n0 else self.means.new_zeros(0)
-            high = (grads >= grad_threshold) & allowed
-            small = max_scale <= percent_dense * scene_extent
-            clone_sel, split_sel = high & small, high & ~small
-            if max_gaussians is not None:
-                budget = max(0, int(max_gaussians) - n0)
-                cand = (clone_sel | split_sel).nonzero().squeeze(1)
-                if cand.numel() > budget:
-                    top = cand[torch.argsort(grads[cand], descending=True, stable=True)[:budget]]
-                    chosen = torch.zeros(n0, dtype=torch.bool, device=dev)
-                    chosen[top] = True
-                    clone_sel &= chosen
-                    split_sel &= chosen
-            screen = self.max_radii2d.clone()
-            if radii is not None and n0:
-                screen = torch.maximum(screen, radii.detach().to(screen.dtype).reshape(-1, n0).max(0).values)
-
-            # Clones are exact copies; splits sample 2 positions from the parent Gaussian.
-            ci, si = clone_sel.nonzero().squeeze(1), split_sel.nonzero().squeeze(1)
-            src = torch.cat([ci, si, si])
-            new = {name: getattr(self, name).detach()[src].clone() for name in PARAM_NAMES}
-            ns = si.numel()
-            if ns:
-                std = self.scales[si].repeat(2, 1)
-                noise = torch.randn(std.shape, generator=generator, device=generator.device if generator is not None else dev)
-                samples = noise.to(dev) * std
-                rot = quat_to_rotmat(self.quats[si]).repeat(2, 1, 1)
-                new["means"][ci.numel():] = (rot @ samples[..., None])[..., 0] + self.means[si].repeat(2, 1)
-                new["log_scales"][ci.numel():] = torch.log(self.scales[si].repeat(2, 1) / (0.8 * 2))
-            trainable_new = self._trainable.to(dev)[src] if torch.is_tensor(self._trainable) else None
-            self.append(new, mask=self.mask[src], generation=self.generation[src], optimizer=optimizer,
-                        trainable=trainable_new)
-            n1 = self.num_gaussians
-            screen = torch.cat([screen, screen.new_zeros(n1 - n0)])
-
-            split_parent = torch.cat([split_sel, torch.zeros(n1 - n0, dtype=torch.bool, device=dev)])
-            crit = self.opacities < min_opacity
-            if max_screen_size:
-                crit |= screen > max_screen_size
-                crit |= self.scales.max(dim=1).values > 0.1 * scene_extent
-            if only_mask:
-                crit &= self.editable_rows()
-            crit &= ~split_parent
-            self.prune(~(crit | split_parent), optimizer=optimizer)
-            self.reset_densification_stats()
-        return {"cloned": int(ci.numel()), "split": int(ns), "pruned": int(crit.sum())}
-
-    @torch.no_grad()
-    def reset_opacity(self, value: float = 0.01, optimizer: Optimizers = None, only_mask: bool = False) -> None:
-        """Clamp opacities to at most `value` (3DGS opacity reset) and zero their optimizer state.
-
-        `only_mask`: only editable rows (mask | generation > 0) are reset.
-        """
-        if not 0.0 < value < 1.0:
-            raise ValueError(f"reset_opacity: value must be in (0, 1), got {value}")
-        rows = self.editable_rows() if only_mask else torch.ones_like(self.mask)
-        p = self.opacity_logits
-        target = _inverse_sigmoid(torch.minimum(self.opacities, torch.full_like(p, value)))
-        _edit_optimizer_rows(optimizer, p, lambda v: v.masked_fill(rows.view(-1, *[1] * (v.dim() - 1)), 0))
-        p.data = torch.where(rows, target, p.data)
-
     # ------------------------------------------------------------------ gradient masking
     def set_trainable_mask(self, rows: Union[None, str, torch.Tensor]) -> None:
         """Zero the gradients of every parameter (quats included) outside the trainable rows.
 
         rows: None removes the masking; "editable" (EDITABLE) means mask | generation > 0,
         evaluated at each backward so it follows prune/append/densify; a bool tensor (N,) fixes
-        the rows explicitly (pruned along, new rows trainable, see `append`). Saved in the
-        state dict. Note: Adam still moves rows whose moments are non-zero from earlier steps.
+        the rows explicitly (kept in the `trainable` buffer, which follows every row operation:
+        appended rows are trainable unless told otherwise, children inherit their parent's flag).
+        Saved in checkpoints. Note: Adam still moves rows whose moments are non-zero from earlier steps.
         """
-        for h in self._grad_hooks:
-            h.remove()
-        self._grad_hooks = []
-        if rows is None:
-            self._trainable = None
-            return
         if isinstance(rows, str):
             if rows != EDITABLE:
                 raise ValueError(f"set_trainable_mask: unknown rule '{rows}'; use '{EDITABLE}', a bool tensor or None")
-            self._trainable = rows
+            self._use_trainable_rule(EDITABLE)
+        elif rows is None:
+            self._use_trainable_rule(None)
         else:
             rows = torch.as_tensor(rows, device=self.means.device)
             if rows.dtype != torch.bool or tuple(rows.shape) != (self.num_gaussians,):
                 raise ValueError(f"set_trainable_mask: rows must be a bool tensor of shape ({self.num_gaussians},), got {rows.dtype} {tuple(rows.shape)}")
-            self._trainable = rows.clone()
-        self._register_grad_hooks()
+            self.trainable = rows.clone()
+            self._use_trainable_rule(_ROWS)
+
+    def _use_trainable_rule(self, rule: Optional[str]) -> None:
+        for h in self._grad_hooks:
+            h.remove()
+        self._grad_hooks = []
+        self._trainable_rule = rule
+        if rule is not None:
+            self._register_grad_hooks()
 
     def trainable_rows(self) -> Optional[torch.Tensor]:
         """(N,) bool rows whose gradients pass, or None when no masking is set."""
-        if self._trainable is None:
+        if self._trainable_rule is None:
             return None
-        if isinstance(self._trainable, str):
+        if self._trainable_rule == EDITABLE:
             return self.editable_rows()
-        return self._trainable
+        return self.trainable
 
     def _register_grad_hooks(self) -> None:
         def hook(grad: torch.Tensor) -> torch.Tensor:
@@ -748,7 +454,7 @@ class GaussianModel(BaseModule):
             if rows.shape[0] != grad.shape[0]:
                 raise RuntimeError(
                     f"trainable rows ({rows.shape[0]}) do not match the {grad.shape[0]} Gaussians; "
-                    f"call set_trainable_mask again after changing the model outside prune/append"
+                    f"call set_trainable_mask again after changing the model outside gs_regional.geometry.rows"
                 )
             keep = rows.to(grad.device).view(-1, *[1] * (grad.dim() - 1))
             return grad.masked_fill(~keep, 0)  # masked_fill: a NaN gradient is zeroed too
@@ -765,31 +471,33 @@ class GaussianModel(BaseModule):
 
     def __setstate__(self, state) -> None:
         super().__setstate__(state)
-        if self._trainable is not None:
+        if self._trainable_rule is not None:
             self._register_grad_hooks()
 
     # ------------------------------------------------------------------ checkpoints
     def get_extra_state(self) -> dict:
-        trainable = self._trainable.cpu() if torch.is_tensor(self._trainable) else self._trainable
         return {
             "sh_degree": self.sh_degree,
             "extra_names": list(self.extra_names),
             "extra_dtypes": list(self.extra_dtypes),
             "source_path": self.source_path,
-            "trainable": trainable,
+            "trainable_rule": self._trainable_rule,
         }
 
     def set_extra_state(self, state: dict) -> None:
+        # Runs after the buffers are loaded, so the `trainable` rows are already in place.
         self.extra_names = list(state.get("extra_names", []))
         self.extra_dtypes = list(state.get("extra_dtypes", []))
         self.source_path = state.get("source_path")
-        trainable = state.get("trainable")
-        self.set_trainable_mask(trainable.to(self.means.device) if torch.is_tensor(trainable) else trainable)
+        rule = state.get("trainable_rule")
+        if rule not in (None, EDITABLE, _ROWS):
+            raise ValueError(f"GaussianModel checkpoint: unknown trainable-row rule {rule!r}")
+        self._use_trainable_rule(rule)
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
         # The number of Gaussians changes during training: resize every row tensor to the
         # checkpoint's shape first (through .data, so Parameters and optimizers stay valid).
-        for name in PARAM_NAMES + ROW_BUFFERS:
+        for name in PARAM_NAMES + tuple(ROW_STATE):
             key = prefix + name
             if key not in state_dict:
                 continue
@@ -807,19 +515,17 @@ class GaussianModel(BaseModule):
             self.sh_degree = _degree_from_rest(self.sh_rest.shape[1])
         except ValueError as e:
             error_msgs.append(f"{prefix}sh_rest: {e}")
-        if torch.is_tensor(self._trainable) and self._trainable.shape[0] != self.num_gaussians:
-            self._trainable = None  # explicit rows of another size; the extra state restores them
-            self.set_trainable_mask(None)
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
 
     # ------------------------------------------------------------------ optimisation
-    def optimizer_param_groups(self, lr: Optional[Mapping[str, float]] = None, spatial_scale: float = 1.0) -> List[dict]:
-        """One param group per parameter, named, with 3DGS learning rates (overridable).
-
-        The `means` rate is multiplied by `spatial_scale` (the scene extent in 3DGS).
-        """
-        rates = dict(DEFAULT_LR)
-        given = dict(lr or {})
+    def optimizer_param_groups(
+        self, lr: Union[None, LearningRates, Mapping[str, float]] = None, spatial_scale: float = 1.0
+    ) -> List[dict]:
+        """One param group per parameter, named, with 3DGS learning rates (`LearningRates`, or a
+        mapping that overrides some of them). The `means` rate is multiplied by `spatial_scale`
+        (the scene extent in 3DGS)."""
+        rates = dataclasses.asdict(LearningRates())
+        given = dataclasses.asdict(lr) if isinstance(lr, LearningRates) else dict(lr or {})
         unknown = sorted(set(given) - set(PARAM_NAMES))
         if unknown:
             raise ValueError(f"optimizer_param_groups: unknown learning-rate keys {unknown}; allowed: {list(PARAM_NAMES)}")

@@ -10,6 +10,9 @@
   `on_load_checkpoint` *before* Lightning applies the state dict (so subclasses can resize
   parameters whose size changed, e.g. Gaussians added by an edit).
 
+`GaussianSystem` adds what every system that optimises a GaussianModel shares: the learning rates
+(`system.lr`) and the Adam optimizer built from them.
+
 Paths are deliberately not stored in checkpoints: resuming in the same (or a moved) trial dir
 writes where launch.py says.
 """
@@ -18,7 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence
 
@@ -28,6 +31,7 @@ import torch
 import torch.utils.data
 
 from gs_regional.config import parse_structured
+from gs_regional.geometry.gaussian_model import LearningRates
 from gs_regional.utils import visualize
 from gs_regional.utils.io import write_json_atomic
 
@@ -246,3 +250,16 @@ class BaseSystem(lightning.LightningModule):
             return bool(trainer.fit_loop.epoch_loop.batch_progress.is_last_batch)
         except AttributeError:
             return False
+
+
+class GaussianSystem(BaseSystem):
+    """A system that optimises the Gaussians `self.geometry` of the scene `self.scene` with Adam
+    (manual optimisation: subclasses call `self.optimizers()` in their training step)."""
+
+    @dataclass
+    class Config:
+        lr: LearningRates = field(default_factory=LearningRates)  # the `means` rate is x the scene extent
+
+    def configure_optimizers(self):
+        groups = self.geometry.optimizer_param_groups(self.cfg.lr, spatial_scale=self.scene.extent)
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)

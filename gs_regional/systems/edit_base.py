@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import torch
@@ -13,24 +13,15 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
+from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
-from gs_regional.systems.base import BaseSystem
+from gs_regional.systems.base import GaussianSystem
 from gs_regional.utils.image import dilate
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class LearningRates:
-    means: float = 1.6e-4  # times the scene extent
-    quats: float = 1e-3
-    log_scales: float = 5e-3
-    opacity_logits: float = 0.05
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 1.25e-4
 
 
 @dataclass
@@ -43,9 +34,9 @@ class EvalConfig:
     edit_caption: str = ""  # defaults to the prompt
 
 
-class EditSystemBase(BaseSystem):
+class EditSystemBase(GaussianSystem):
     @dataclass
-    class Config:
+    class Config(GaussianSystem.Config):
         geometry_type: str = "gaussian-model"
         geometry: dict = field(default_factory=dict)
         renderer_type: str = "auto"  # gsplat-rasterizer on a CUDA device when gsplat imports, else torch-rasterizer
@@ -54,7 +45,6 @@ class EditSystemBase(BaseSystem):
         guidance: dict = field(default_factory=dict)
         prompt: str = ""
         seed: int = 0
-        lr: LearningRates = field(default_factory=LearningRates)
         lambda_l1: float = 1.0
         lambda_lpips: float = 0.0  # needs the `lpips` extra
         eval: EvalConfig = field(default_factory=EvalConfig)
@@ -103,6 +93,9 @@ class EditSystemBase(BaseSystem):
             )
         if gt is not None:
             self.attach_ground_truth(gt)
+        # The scene as loaded is the source: its rows are numbered 0..n_source-1 and every row
+        # added, split or moved later keeps the number of the source row it descends from.
+        self.geometry.mark_as_source()
         self.n_source = self.geometry.num_gaussians
         # The unedited scene, for source renders and comparisons. Kept out of the module tree
         # (object.__setattr__) so it never enters checkpoints: setup() rebuilds it on resume.
@@ -142,10 +135,6 @@ class EditSystemBase(BaseSystem):
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
 
     # ----- optimisation --------------------------------------------------------------------------
-    def configure_optimizers(self):
-        groups = self.geometry.optimizer_param_groups(asdict(self.cfg.lr), spatial_scale=self.scene.extent)
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
-
     def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         loss = self.cfg.lambda_l1 * (rgb - target).abs().mean()
         if self.cfg.lambda_lpips > 0:
@@ -157,18 +146,17 @@ class EditSystemBase(BaseSystem):
             loss = loss + self.cfg.lambda_lpips * self.lpips(to_net(rgb), to_net(target)).mean()
         return loss
 
-    def optimize_on(self, index: int, target: torch.Tensor, densify_stats: bool = False) -> Dict[str, torch.Tensor]:
-        """One Adam step of the scene towards `target` at view `index`."""
+    def optimize_on(self, index: int, target: torch.Tensor, densify: Optional[DensifyStrategy] = None,
+                    step: int = 0) -> Dict[str, torch.Tensor]:
+        """One Adam step of the scene towards `target` at view `index`; with `densify`, its
+        statistics are gathered from this step's gradients (at the strategy's `step`)."""
         opt = self.optimizers()
         out = self.render_view(index)
         loss = self.photometric_loss(out["rgb"], target.to(self.device))
         opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
-        if densify_stats and out["means2d"].grad is not None:
-            # In NDC units, as the 3DGS gradient threshold (2e-4) assumes.
-            cam = self.scene.cameras[index]
-            ndc = torch.tensor([cam.width / 2.0, cam.height / 2.0], device=self.device)
-            self.geometry.add_densification_stats(out["means2d"].grad * ndc, out["visible"])
+        if densify is not None:
+            densify.collect_stats(self.geometry, out, self.scene.cameras[index], step)
         opt.step()
         self.log("train/loss", loss.detach(), prog_bar=True)
         return out

@@ -20,43 +20,26 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import List, Optional
 
 import torch
 
 from gs_regional.config import ConfigError
 from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim, ssim_loss_value
 from gs_regional.registry import register
 from gs_regional.renderers.select import check_renderer_config, make_renderer
-from gs_regional.systems.base import BaseSystem
-from gs_regional.systems.edit_base import LearningRates
+from gs_regional.systems.base import GaussianSystem
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class DensifyConfig:
-    start: int = 100  # first step that densifies (statistics are gathered from step 0)
-    stop: int = 1500  # no densification, statistics or opacity reset from this step on
-    every: int = 100
-    # Mean view-space gradient norm above which a Gaussian is cloned or split. In NDC units
-    # (pixel gradient x half the image size), as 3DGS's 2e-4: independent of the resolution.
-    grad_threshold: float = 0.0002
-    percent_dense: float = 0.01  # clone (small) vs split (large) at this fraction of the extent
-    min_opacity: float = 0.005  # prune below this opacity
-    opacity_reset_every: int = 1000  # 0: never
-    # After the first opacity reset, prune Gaussians wider than this on screen (pixels at the
-    # working resolution) or than 0.1 x the scene extent in the world; 0: off.
-    max_screen_size: float = 0.0
-    max_gaussians: int = 200000
-
-
 @register("reconstruct")
-class Reconstruct(BaseSystem):
+class Reconstruct(GaussianSystem):
     @dataclass
-    class Config:
+    class Config(GaussianSystem.Config):
         renderer_type: str = "auto"  # gsplat-rasterizer on a CUDA device when gsplat imports, else torch-rasterizer
         renderer: dict = field(default_factory=dict)
         sh_degree: int = 3
@@ -67,9 +50,10 @@ class Reconstruct(BaseSystem):
         max_steps: int = 3000
         lambda_dssim: float = 0.2
         seed: int = 0
-        lr: LearningRates = field(default_factory=LearningRates)
         lr_means_final_factor: float = 0.01  # exponential decay of the position learning rate
-        densify: DensifyConfig = field(default_factory=DensifyConfig)
+        # 3DGS's densification (its statistics are gathered from step 0); `budget` counts from the
+        # number of initial points
+        densify: DensifyStrategy = field(default_factory=DensifyStrategy)
         # Colour behind the Gaussians in training and evaluation; unset: the mean colour of the
         # training photos (the least wrong guess where nothing covers the image).
         background: Optional[List[float]] = None
@@ -85,13 +69,13 @@ class Reconstruct(BaseSystem):
             raise ConfigError(f"system.sh_degree must be in 0..4, got {cfg.sh_degree}")
         if cfg.background is not None and len(cfg.background) != 3:
             raise ConfigError(f"system.background must be 3 values (r, g, b in [0, 1]), got {list(cfg.background)}")
-        if cfg.densify.every < 1:
-            raise ConfigError(f"system.densify.every must be >= 1, got {cfg.densify.every}")
+        cfg.densify.check("system.densify")
         # Built in setup(), for the device the trainer places the module on; checked now.
         check_renderer_config(cfg.renderer_type, cfg.renderer)
         self.geometry: Optional[GaussianModel] = None
         self.seconds_before = 0.0  # fit time of the runs this one resumes
         self.steps_before = 0  # steps of the checkpoint loaded (--export does not restore global_step)
+        self.initial_count = 0  # Gaussians at the start of the fit (what densify.budget counts from)
 
     @property
     def total_steps(self) -> int:
@@ -130,14 +114,11 @@ class Reconstruct(BaseSystem):
             rgb = torch.rand(cfg.random_points, 3, generator=gen)
         self.geometry = GaussianModel.from_points(xyz, rgb, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity)
         self.renderer = make_renderer(cfg.renderer_type, cfg.renderer, self.trainer.strategy.root_device)
+        self.initial_count = self.geometry.num_gaussians
         if cfg.background is not None:
             self.background = torch.tensor(list(cfg.background), dtype=torch.float32)
         else:
             self.background = torch.stack([scene.images[i].reshape(-1, 3).mean(0) for i in scene.train_indices]).mean(0)
-
-    def configure_optimizers(self):
-        groups = self.geometry.optimizer_param_groups(asdict(self.cfg.lr), spatial_scale=self.scene.extent)
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def active_sh_degree(self, step: int) -> int:
         every = self.cfg.sh_degree_every
@@ -168,30 +149,17 @@ class Reconstruct(BaseSystem):
         if g.sh_rest.grad is not None:
             # Coefficients of the degrees not active yet get no gradient, so Adam leaves them at 0.
             g.sh_rest.grad[:, (self.active_sh_degree(step) + 1) ** 2 - 1 :] = 0
-        if step < d.stop and out["means2d"].grad is not None:
-            ndc = torch.tensor([cam.width / 2.0, cam.height / 2.0], device=self.device)
-            g.add_densification_stats(out["means2d"].grad * ndc, out["visible"], out["radii"])
+        d.collect_stats(g, out, cam, step)
         opt.step()
         self.log("train/loss", loss.detach(), prog_bar=True)
         self.log("train/gaussians", float(g.num_gaussians), prog_bar=True)
         # The graph still references the parameters' gradient accumulators, whose recorded shapes
         # would be stale once densification changes the number of Gaussians.
         del out, loss, l1
-        with torch.no_grad():
-            if d.start <= step < d.stop and step > 0 and step % d.every == 0:
-                prune_big = d.max_screen_size > 0 and d.opacity_reset_every > 0 and step > d.opacity_reset_every
-                g.densify_and_prune(
-                    grad_threshold=d.grad_threshold,
-                    scene_extent=scene.extent,
-                    percent_dense=d.percent_dense,
-                    min_opacity=d.min_opacity,
-                    max_screen_size=d.max_screen_size if prune_big else None,
-                    max_gaussians=d.max_gaussians,
-                    optimizer=opt.optimizer,
-                    generator=torch.Generator().manual_seed(cfg.seed * 7919 + step),
-                )
-            if d.opacity_reset_every and 0 < step < d.stop and step % d.opacity_reset_every == 0:
-                g.reset_opacity(optimizer=opt.optimizer)
+        d.refine(
+            g, step, scene.extent, opt.optimizer, last_step=cfg.max_steps - 1, base_count=self.initial_count,
+            generator=torch.Generator().manual_seed(cfg.seed * 7919 + step),
+        )
         return None
 
     # ----- outputs -------------------------------------------------------------------------------
@@ -242,8 +210,9 @@ class Reconstruct(BaseSystem):
 
     # ----- checkpoints ---------------------------------------------------------------------------
     def extra_state(self) -> dict:
-        return {"seconds": self.elapsed(), "steps": int(self.global_step)}
+        return {"seconds": self.elapsed(), "steps": int(self.global_step), "initial_count": self.initial_count}
 
     def load_extra_state(self, state: dict) -> None:
         self.seconds_before = float(state.get("seconds", 0.0))
         self.steps_before = int(state.get("steps", 0))
+        self.initial_count = int(state.get("initial_count", self.initial_count))

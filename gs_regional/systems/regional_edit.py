@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import ClassVar, Dict, List, Optional
 
 import torch
 
@@ -12,6 +12,8 @@ from gs_regional.config import ConfigError
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
 from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
+from gs_regional.geometry import rows
+from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
@@ -37,16 +39,16 @@ class LocalizeConfig:
 
 @dataclass
 class RefineConfig:
+    MOVED_KEYS: ClassVar[Dict[str, str]] = {
+        "densify": "system.densify.enabled", "densify_every": "system.densify.every",
+        "grad_threshold": "system.densify.grad_threshold", "densify_budget": "system.densify.budget",
+    }
     cycles: int = 3
     t_schedule: List[int] = field(default_factory=lambda: [750, 500, 250])  # start timestep per cycle
     constant_t: Optional[int] = None  # ablation: one start timestep for every cycle
     iterations_per_cycle: int = 500
     m: int = 20  # nearest cameras edited around the cycle's frontal view
     optimize_all: bool = False  # let gradients reach every Gaussian (the paper's setting)
-    densify: bool = True
-    densify_every: int = 100
-    grad_threshold: float = 0.0002
-    densify_budget: int = 20000  # at most this many Gaussians added by densification in total
     # Keep each edited view only where the editable Gaussians render (dilated, feathered) and the
     # source render elsewhere: the 2D editor's changes outside the region never become targets.
     composite: bool = True
@@ -64,6 +66,14 @@ class RegionalEdit(EditSystemBase):
         localization: LocalizeConfig = field(default_factory=LocalizeConfig)
         init: InitConfig = field(default_factory=InitConfig)
         refine: RefineConfig = field(default_factory=RefineConfig)
+        # Densification during refinement. Its steps count within each cycle (never at a cycle's
+        # last step); only the editable Gaussians are densified and pruned unless
+        # refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
+        densify: DensifyStrategy = field(
+            default_factory=lambda: DensifyStrategy(
+                start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000
+            )
+        )
 
     def __init__(self, cfg=None, resumed: bool = False) -> None:
         super().__init__(cfg, resumed=resumed)
@@ -74,6 +84,7 @@ class RegionalEdit(EditSystemBase):
                 f"system.refine.t_schedule has {len(r.t_schedule)} timesteps for {r.cycles} cycles; "
                 "give one start timestep per cycle (or system.refine.constant_t)"
             )
+        self.cfg.densify.check("system.densify")
         self.depth_estimator = None
         if self.cfg.initialize:
             self.depth_estimator = find(self.cfg.depth_type, kind="depth")(self.cfg.depth)
@@ -85,6 +96,7 @@ class RegionalEdit(EditSystemBase):
         self.targets_cycle = -1
         self.edited_views: List[int] = []
         self.masks2d: Optional[torch.Tensor] = None
+        self.source_selection: Optional[torch.Tensor] = None  # (n_source,) bool, set by localization
         self.first_edit: Optional[torch.Tensor] = None
         self.refine_start_count = 0
 
@@ -126,11 +138,14 @@ class RegionalEdit(EditSystemBase):
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
         g.mask.copy_(selected)
+        # The localized region as rows of the source scene: what the composite and the evaluation
+        # render from the source, however densification and pruning move the rows later.
+        self.source_selection = rows.source_rows(g, selected, self.n_source)
         self.counts["selected"] = int(selected.sum())
         self.masks2d = masks
         self.add_time("localize", time.perf_counter() - t0)
         if self.scene.ground_truth is not None:
-            self.localize_metrics.update(mask_metrics(selected.cpu(), self.scene.ground_truth.region.cpu()))
+            self.localize_metrics.update(mask_metrics(self.source_selection.cpu(), self.scene.ground_truth.region.cpu()))
         for i in views:
             m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
             self.save_image(f"localize/mask3d_{i:03d}.png", overlay_mask(self.source_renders[i], m3 > 0.5))
@@ -177,12 +192,7 @@ class RegionalEdit(EditSystemBase):
             )
             n = params["means"].shape[0]
             if n:
-                g.append(
-                    params,
-                    mask=torch.ones(n, dtype=torch.bool, device=self.device),
-                    generation=torch.ones(n, dtype=torch.long, device=self.device),
-                    optimizer=self.optimizers().optimizer,
-                )
+                rows.append(g, params, optimizer=self.optimizers().optimizer, mask=True, generation=1)
             self.counts["added_init"] = n
             self.init_report = report
             self.save_image("initialize/depth_unedited.png", _normalize(disp[0]))
@@ -250,7 +260,7 @@ class RegionalEdit(EditSystemBase):
     def source_region(self, index: int) -> torch.Tensor:
         """(H, W) render of the localized Gaussians of the source scene at view `index`."""
         cam = self.scene.cameras[index].to(self.device)
-        return render_selection(self.source_model, self.renderer, cam, self.geometry.mask[: self.n_source])
+        return render_selection(self.source_model, self.renderer, cam, self.source_selection.to(self.device))
 
     def composite(self, index: int, edited: torch.Tensor) -> torch.Tensor:
         """The edited view inside the localized region (rendered from the source scene, dilated and
@@ -293,18 +303,15 @@ class RegionalEdit(EditSystemBase):
         # Stateless per-step choice of view, so a resumed run makes the same choices.
         gen = torch.Generator().manual_seed(self.cfg.seed * 104729 + step)
         k = int(torch.randint(len(self.cycle_views), (1,), generator=gen))
-        self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify_stats=r.densify)
-        if r.densify and it > 0 and it % r.densify_every == 0 and it < r.iterations_per_cycle - 1:
-            with torch.no_grad():
-                rep = self.geometry.densify_and_prune(
-                    grad_threshold=r.grad_threshold,
-                    scene_extent=self.scene.extent,
-                    only_mask=not r.optimize_all,
-                    max_gaussians=self.refine_start_count + r.densify_budget,
-                    optimizer=self.optimizers().optimizer,
-                )
-            self.counts["densified"] = self.counts.get("densified", 0) + rep.get("cloned", 0) + rep.get("split", 0)
-            self.counts["pruned"] = self.counts.get("pruned", 0) + rep.get("pruned", 0)
+        densify = self.cfg.densify
+        self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify=densify, step=it)
+        rep = densify.refine(
+            self.geometry, it, self.scene.extent, self.optimizers().optimizer,
+            last_step=r.iterations_per_cycle - 1, base_count=self.refine_start_count,
+        )
+        if rep is not None:
+            self.counts["densified"] = self.counts.get("densified", 0) + rep["cloned"] + rep["split"]
+            self.counts["pruned"] = self.counts.get("pruned", 0) + rep["pruned"]
         self.add_time("refine_train", time.perf_counter() - t0)
         return None
 
@@ -320,7 +327,7 @@ class RegionalEdit(EditSystemBase):
 
     def evaluation_region(self, index: int):
         region = super().evaluation_region(index)
-        if region is None and self.geometry.mask.any():
+        if region is None and self.source_selection is not None and bool(self.source_selection.any()):
             # No ground truth: what lies outside this run's own (dilated) 3D mask should not change.
             region = ~dilate(self.source_region(index) > 0.01, 2)
         return region
@@ -337,6 +344,7 @@ class RegionalEdit(EditSystemBase):
             "edited_views": list(self.edited_views),
             "first_edit": None if self.first_edit is None else self.first_edit.cpu(),
             "refine_start_count": self.refine_start_count,
+            "source_selection": None if self.source_selection is None else self.source_selection.cpu(),
             "localize_views": list(getattr(self, "localize_views", [])),
             "localize_metrics": dict(getattr(self, "localize_metrics", {})),
             "init_report": getattr(self, "init_report", None),
@@ -354,6 +362,7 @@ class RegionalEdit(EditSystemBase):
         self.edited_views = state["edited_views"]
         self.first_edit = state["first_edit"]
         self.refine_start_count = state["refine_start_count"]
+        self.source_selection = state.get("source_selection")
         self.localize_views = state["localize_views"]
         self.localize_metrics = state["localize_metrics"]
         self.init_report = state["init_report"]
