@@ -143,9 +143,16 @@ class BaseSystem(lightning.LightningModule):
         """Give the system its datamodule outside fit/validate/test (used by --export)."""
         self._datamodule = datamodule
 
+    def attached_trainer(self) -> Optional["lightning.Trainer"]:
+        """The trainer, or None outside fit/validate/test (Lightning's public `trainer` raises then)."""
+        try:
+            return self.trainer
+        except RuntimeError:
+            return None
+
     @property
     def datamodule(self) -> Any:
-        trainer = self._trainer
+        trainer = self.attached_trainer()
         if trainer is not None and getattr(trainer, "datamodule", None) is not None:
             return trainer.datamodule
         return self._datamodule
@@ -165,7 +172,7 @@ class BaseSystem(lightning.LightningModule):
 
     def log_metrics(self, metrics: Mapping[str, Any], step: Optional[int] = None) -> None:
         """Send scalars straight to the run's loggers (the CSV log), at `step` (default: global step)."""
-        trainer = self._trainer
+        trainer = self.attached_trainer()
         if trainer is None or not trainer.loggers:
             return
         values = {k: float(v.detach().cpu().item() if isinstance(v, torch.Tensor) else v) for k, v in metrics.items()}
@@ -245,8 +252,8 @@ class BaseSystem(lightning.LightningModule):
             restore_rng_state(pending)
 
     def _saved_at_epoch_end(self) -> bool:
-        trainer = self._trainer
-        try:
+        trainer = self.attached_trainer()
+        try:  # public loop attributes; absent (None trainer, other loop layout) means "not at the end"
             return bool(trainer.fit_loop.epoch_loop.batch_progress.is_last_batch)
         except AttributeError:
             return False
