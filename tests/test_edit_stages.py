@@ -86,7 +86,7 @@ def test_depth_initialization_recovers_a_known_bump():
     region = torch.zeros(h, w, dtype=torch.bool)
     region[8:22, 10:24] = True
     params, report, d_new = new_gaussians_from_depth(
-        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, median=1, scale_factor=1.0, change_blur=0.0), sh_degree=0
+        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, median=1, scale_factor=1.0), sh_degree=0
     )
     assert report["added"] == int(block.sum())
     assert torch.allclose(d_new[block], torch.full((int(block.sum()),), 3.0), rtol=1e-4)
@@ -95,7 +95,7 @@ def test_depth_initialization_recovers_a_known_bump():
     rgb = sh_to_rgb(params["sh_dc"])
     assert torch.allclose(rgb, torch.tensor([0.9, 0.1, 0.1]).expand_as(rgb), atol=1e-5)
     capped, rep2, _ = new_gaussians_from_depth(
-        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, median=1, scale_factor=1.0, change_blur=0.0, max_new=7), sh_degree=0
+        cam, unedited, edited, region, d3, alpha, disp_u, disp_e, InitConfig(dilate_px=0, median=1, scale_factor=1.0, max_new=7), sh_degree=0
     )
     assert capped["means"].shape[0] == 7 and rep2["skipped_by_cap"] == int(block.sum()) - 7
 

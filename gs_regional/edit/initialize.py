@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
-from gs_regional.utils.image import dilate, gaussian_blur
+from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh
 
 
@@ -17,9 +17,16 @@ from gs_regional.utils.sh import rgb_to_sh
 class InitConfig:
     alpha_min: float = 0.5  # rendered pixels below this opacity have no trustworthy 3DGS depth
     dilate_px: int = 3  # grow the 2D region: added geometry may stick out of the masked area
-    color_change: float = 0.08  # skip pixels whose colour changed less than this (max over RGB)
-    change_blur: float = 1.0  # px: compare colours low-passed, as a full edit never keeps fine detail
-    depth_change: float = 0.03  # ...and whose depth changed less than this (relative)
+    # Gaussians are added only where the edit changes the shape: where the calibrated depth of the
+    # edited view differs from the rendered depth by more than `noise_sigmas` x the depth noise
+    # (measured outside the region, where nothing changes) and by at least `depth_change`
+    # (relative). A colour change alone adds nothing: refinement recolours the existing Gaussians.
+    depth_change: float = 0.03
+    noise_sigmas: float = 4.0
+    # A calibration fitted on fewer pixels, or whose median relative residual exceeds
+    # `max_calibration_residual`, is rejected: no Gaussians from depth, densification only.
+    min_calibration_pixels: int = 256
+    max_calibration_residual: float = 0.05
     stride: int = 1  # unproject every `stride`-th pixel in x and y
     max_new: int = 20000  # cap on the number of added Gaussians
     opacity: float = 0.3  # initial opacity of added Gaussians ("modest": they must not hide the surface behind)
@@ -79,6 +86,12 @@ def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: 
     return near
 
 
+def _rejected(report: dict, reason: str) -> tuple:
+    """The answer of `new_gaussians_from_depth` when the calibration is rejected: nothing added."""
+    report.update(rejected=reason, added=0)
+    return {}, report, None
+
+
 def new_gaussians_from_depth(
     camera: Camera,
     unedited: torch.Tensor,  # (H, W, 3) render of the source scene
@@ -92,20 +105,21 @@ def new_gaussians_from_depth(
     sh_degree: int,
     region_means: Optional[torch.Tensor] = None,  # (M, 3) selected Gaussians, for `max_distance`
 ) -> tuple:
-    """Returns (params dict for GaussianModel.append, report dict, d_new (H, W) for pictures)."""
+    """Returns (params dict for GaussianModel.append, report dict, d_new (H, W) for pictures).
+
+    When the depth calibration cannot be trusted (too few calibration pixels, or a poor fit), no
+    Gaussians are returned and `report["rejected"]` says why; `d_new` is then None."""
     device = edited.device
     valid = alpha_3dgs > cfg.alpha_min
     region = dilate(region, cfg.dilate_px)
     calib_px = valid & ~region
     report = {"calibration_pixels": int(calib_px.sum())}
-    if int(calib_px.sum()) < 16:
-        raise RuntimeError(
-            f"initialize: only {int(calib_px.sum())} pixels outside the region have a rendered depth; "
-            "cannot calibrate the monocular depth (is the mask covering the whole view?)"
-        )
+    if report["calibration_pixels"] < max(cfg.min_calibration_pixels, 16):
+        return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region have a "
+                         f"rendered depth to calibrate on (system.init.min_calibration_pixels={cfg.min_calibration_pixels})")
     # The 3DGS depth behind the region, extended to empty pixels by the farthest rendered depth,
     # so geometry sticking out over the background still gets a reference depth.
-    far = float(depth_3dgs[valid].max())
+    far = float(depth_3dgs.detach()[valid].max())
     d3 = torch.where(valid, depth_3dgs, torch.full_like(depth_3dgs, far))
     disp_3dgs = 1.0 / d3
     disp_unedited = median_filter(disp_unedited, cfg.median)
@@ -115,20 +129,35 @@ def new_gaussians_from_depth(
     d_mono_u = calibrated_depth(disp_unedited, a_u, b_u)
     d_mono_e = calibrated_depth(disp_edited, a_e, b_e)
     d_new = transfer_depth(d_mono_e, d_mono_u, d3)
-    report.update(scale_unedited=float(a_u), shift_unedited=float(b_u), scale_edited=float(a_e), shift_edited=float(b_e))
+    # How well each fit explains the rendered depth: the median relative disparity residual on the
+    # calibration pixels (≈ the relative depth error of a typical pixel).
+    residual = max(
+        float(((a * disp + b - disp_3dgs).abs() / disp_3dgs)[calib_px].median())
+        for a, b, disp in ((a_u, b_u, disp_unedited), (a_e, b_e, disp_edited))
+    )
+    relative_change = (d_new - d3).abs() / d3
+    # Outside the region nothing changes, so the relative change measured there is the noise of
+    # the quantity thresholded below (1.4826 x median absolute value: a Gaussian's std).
+    noise = 1.4826 * float(relative_change[calib_px & torch.isfinite(relative_change)].median())
+    threshold = max(cfg.depth_change, cfg.noise_sigmas * noise)
+    report.update(
+        scale_unedited=float(a_u), shift_unedited=float(b_u), scale_edited=float(a_e), shift_edited=float(b_e),
+        calibration_residual=residual, depth_noise=noise, depth_threshold=threshold,
+    )
+    if not residual <= cfg.max_calibration_residual:  # NaN rejects too
+        return _rejected(report, f"the monocular depth fits the rendered depth poorly (median relative "
+                         f"residual {residual:.3f} > system.init.max_calibration_residual={cfg.max_calibration_residual})")
 
-    edited = match_colors(edited, unedited, calib_px)
-    low = lambda im: gaussian_blur(im.permute(2, 0, 1), cfg.change_blur).permute(1, 2, 0)  # noqa: E731
-    color_changed = (low(edited) - low(unedited)).abs().amax(-1) > cfg.color_change
-    depth_changed = ((d_new - d3).abs() / d3) > cfg.depth_change
-    candidates = region & (color_changed | depth_changed) & torch.isfinite(d_new) & (d_new > 0)
+    edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
+    depth_changed = relative_change > threshold
+    candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True
     chosen = candidates & grid
     pixels = chosen.nonzero()
     report.update(
         region_pixels=int(region.sum()),
-        skipped_unchanged=int((region & ~(color_changed | depth_changed)).sum()),
+        skipped_unchanged=int((region & ~depth_changed).sum()),
         skipped_by_stride=int((candidates & ~grid).sum()),
     )
     if pixels.shape[0] > cfg.max_new:

@@ -71,6 +71,7 @@ class EditSystemBase(GaussianSystem):
                 ) from None
         self.timings: Dict[str, float] = {}
         self.counts: Dict[str, int] = {}
+        self.warnings: List[str] = []  # what the run noticed going wrong; metrics.json lists them
 
     # ----- scene ---------------------------------------------------------------------------------
     def setup(self, stage: Optional[str] = None) -> None:
@@ -134,6 +135,11 @@ class EditSystemBase(GaussianSystem):
     def add_time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
 
+    def warn(self, message: str) -> None:
+        """Say in the log that something went wrong, and keep it for metrics.json (`warnings`)."""
+        log.warning(message)
+        self.warnings.append(message)
+
     # ----- optimisation --------------------------------------------------------------------------
     def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         loss = self.cfg.lambda_l1 * (rgb - target).abs().mean()
@@ -163,11 +169,12 @@ class EditSystemBase(GaussianSystem):
 
     # ----- checkpoint ----------------------------------------------------------------------------
     def extra_state(self) -> dict:
-        return {"timings": dict(self.timings), "counts": dict(self.counts)}
+        return {"timings": dict(self.timings), "counts": dict(self.counts), "warnings": list(self.warnings)}
 
     def load_extra_state(self, state: dict) -> None:
         self.timings = dict(state.get("timings", {}))
         self.counts = dict(state.get("counts", {}))
+        self.warnings = list(state.get("warnings", []))
 
     # ----- outputs -------------------------------------------------------------------------------
     def evaluation_region(self, index: int) -> Optional[torch.Tensor]:
@@ -255,5 +262,6 @@ class EditSystemBase(GaussianSystem):
         self.add_time("output", time.perf_counter() - t0)
         metrics["seconds"] = {k: round(v, 3) for k, v in self.timings.items()}
         metrics["seconds_total"] = round(sum(v for k, v in self.timings.items()), 3)
+        metrics["warnings"] = list(self.warnings)
         self.write_metrics_json(metrics)
         return metrics

@@ -190,21 +190,26 @@ class RegionalEdit(EditSystemBase):
                 cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree,
                 region_means=g.means.detach()[g.mask],
             )
-            n = params["means"].shape[0]
-            if n:
-                rows.append(g, params, optimizer=self.optimizers().optimizer, mask=True, generation=1)
-            self.counts["added_init"] = n
             self.init_report = report
+            if "rejected" in report:
+                self.warn(f"initialize: depth calibration rejected in view {v}: {report['rejected']}; no Gaussians are "
+                          "added from depth, refinement densifies the region instead")
+                self.counts["added_init"] = 0
+            else:
+                n = params["means"].shape[0]
+                if n:
+                    rows.append(g, params, optimizer=self.optimizers().optimizer, mask=True, generation=1)
+                self.counts["added_init"] = n
+                self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
+                self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
+                log.info(
+                    "initialize: added %d Gaussians from the depth of view %d (%d region pixels without a depth change "
+                    "beyond %.3f, %d skipped by stride, %d too far from the region, %d over the cap of %d)", n, v,
+                    report["skipped_unchanged"], report["depth_threshold"], report["skipped_by_stride"],
+                    report.get("skipped_far_from_region", 0), report["skipped_by_cap"], cfg.init.max_new,
+                )
             self.save_image("initialize/depth_unedited.png", _normalize(disp[0]))
             self.save_image("initialize/depth_edited.png", _normalize(disp[1]))
-            self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
-            self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
-            log.info(
-                "initialize: added %d Gaussians from the depth of view %d (%d region pixels unchanged, %d skipped "
-                "by stride, %d too far from the region, %d over the cap of %d)", n, v, report["skipped_unchanged"],
-                report["skipped_by_stride"], report.get("skipped_far_from_region", 0), report["skipped_by_cap"],
-                cfg.init.max_new,
-            )
         else:
             self.counts["added_init"] = 0
         self.edited_views = [v]

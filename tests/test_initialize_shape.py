@@ -1,0 +1,85 @@
+"""Depth initialization adds Gaussians only where the shape changes (issue 12, "Initialize only
+what changes shape"), on the synthetic scene's known edits with the simulated editor and depth:
+a recolour adds (close to) none, an addition adds next to the true new Gaussians, and a
+calibration that cannot be trusted falls back to densification with a warning in metrics.json."""
+from pathlib import Path
+
+import pytest
+import torch
+
+from trial_helpers import metrics_of, trial_of
+from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
+from gs_regional.edit.localize import render_selection
+from gs_regional.launch import main
+from gs_regional.registry import find
+from gs_regional.sim.scene import make_cameras, make_edit
+
+ROOT = Path(__file__).resolve().parents[1]
+VIEW = 10  # a frontal view of the face (the demo picks it as its first edited view)
+
+
+def initialize(edit: str, corruption: float = 1.0):
+    """new_gaussians_from_depth at a frontal view of the synthetic `edit`, with the true 2D region."""
+    gt = make_edit(edit)
+    cam = make_cameras()[0][VIEW]
+    renderer = find("torch-rasterizer")()
+    editor = find("simulated-editor")()
+    depth = find("simulated-depth")({"corruption": corruption})
+    editor.attach_ground_truth(gt)
+    depth.attach_ground_truth(gt)
+    with torch.no_grad():
+        out = renderer.render(gt.source, cam)
+        edited = editor.edit(out["rgb"][None], out["rgb"][None], gt.prompt, t_start=None, seed=0, cameras=[cam])[0]
+        region = render_selection(gt.source, renderer, cam, gt.region) > 0.5
+        disp = depth.disparity(torch.stack([out["rgb"], edited]), cameras=[cam, cam])
+        params, report, _ = new_gaussians_from_depth(
+            cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], InitConfig(), 0,
+            region_means=gt.source.means[gt.region],
+        )
+    return gt, params, report
+
+
+def test_a_recolour_adds_no_geometry():
+    _, _, report = initialize("recolor")
+    print(report)
+    # The colours of the region change everywhere, its depth nowhere: a handful of noise pixels
+    # beyond 4 sigma at most (the simulated depth's noise is random, so not exactly zero).
+    assert report["added"] <= 0.01 * report["region_pixels"]
+    assert "rejected" not in report and report["calibration_residual"] < 0.05
+    assert report["depth_threshold"] >= 4 * report["depth_noise"] > 0
+
+
+def test_an_addition_adds_next_to_the_true_new_gaussians():
+    gt, params, report = initialize("add")
+    print(report)
+    assert report["added"] >= 10
+    new_means = gt.edited.means.detach()[len(gt.source):]  # the moustache: the Gaussians the true edit adds
+    assert new_means.shape[0] > 0
+    extent = float((new_means.max(0).values - new_means.min(0).values).norm())
+    distance = torch.cdist(params["means"], new_means).min(1).values
+    # Most added points lie on the moustache (within 10% of its size); depth noise puts a few farther.
+    assert float(distance.median()) < 0.1 * extent
+    assert float((distance < 0.2 * extent).float().mean()) >= 0.8
+
+
+def test_a_corrupted_depth_is_rejected():
+    _, params, report = initialize("add", corruption=20.0)
+    print(report)
+    assert report["added"] == 0 and params == {}
+    assert report["calibration_residual"] > 0.05 and "fits the rendered depth poorly" in report["rejected"]
+
+
+def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_path, caplog):
+    argv = [
+        "--config", str(ROOT / "configs/demo.yaml"), "--train", f"exp_root_dir={tmp_path}", "name=corrupt",
+        "system.depth.corruption=20", "data.n_cameras=24", "data.width=64", "data.height=64",
+        "system.eval.turntable_frames=2", "system.eval.max_test_views=2", "trainer.enable_progress_bar=false",
+        "system.localization.max_views=8", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
+        "system.densify.every=3",
+    ]
+    assert main(argv) == 0
+    m = metrics_of(trial_of(tmp_path, "corrupt"))
+    assert m["count_added_init"] == 0 and m["count_densified"] > 0
+    assert m["init"]["calibration_residual"] > 0.05 and m["init"]["calibration_pixels"] > 0
+    assert len(m["warnings"]) == 1 and "depth calibration rejected" in m["warnings"][0]
+    assert any("depth calibration rejected" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
