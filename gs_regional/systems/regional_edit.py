@@ -9,12 +9,13 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
+from gs_regional.edit.composite import composite_target
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
 from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
-from gs_regional.utils.image import dilate, gaussian_blur
+from gs_regional.utils.image import dilate
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems.edit_base import EditSystemBase
@@ -49,10 +50,16 @@ class RefineConfig:
     iterations_per_cycle: int = 500
     m: int = 20  # nearest cameras edited around the cycle's frontal view
     optimize_all: bool = False  # let gradients reach every Gaussian (the paper's setting)
-    # Keep each edited view only where the editable Gaussians render (dilated, feathered) and the
-    # source render elsewhere: the 2D editor's changes outside the region never become targets.
+    # Keep each edited view only where the localized Gaussians render (weighted by how much of the
+    # pixel they cover) and the source render elsewhere: the 2D editor's changes outside the region
+    # (bleed, the blur and tone drift of regenerating the image) never become targets.
     composite: bool = True
-    composite_dilate: int = 6  # pixels of margin around the region for geometry the edit adds
+    # An edit that may change the shape (depth initialization added Gaussians, was rejected or is
+    # off) also keeps, within this many pixels of the region and the added Gaussians, the pixels
+    # the editor changed by more than `composite_noise_sigmas` x its noise (measured beyond that
+    # margin): room for geometry the edit adds. A recolour gets no margin.
+    composite_dilate: int = 6
+    composite_noise_sigmas: float = 4.0
 
 
 @register("regional-edit")
@@ -267,17 +274,24 @@ class RegionalEdit(EditSystemBase):
         cam = self.scene.cameras[index].to(self.device)
         return render_selection(self.source_model, self.renderer, cam, self.source_selection.to(self.device))
 
+    @property
+    def shape_may_change(self) -> bool:
+        """False when depth initialization ran, was trusted and found no change of shape."""
+        report = getattr(self, "init_report", None)
+        return not (self.cfg.initialize and report is not None and "rejected" not in report and report["added"] == 0)
+
     def composite(self, index: int, edited: torch.Tensor) -> torch.Tensor:
-        """The edited view inside the localized region (rendered from the source scene, dilated and
-        feathered so that added geometry next to it is kept), the source render outside: changes
-        the 2D editor makes elsewhere (bleed, kept artefacts of the current render) never become
-        targets."""
+        """The target of view `index`: `edited` where the edit is (composite_target), the source
+        render elsewhere."""
         r = self.cfg.refine
         if not r.composite or r.optimize_all or not self.cfg.localize:
             return edited
-        region = self.source_region(index)
-        soft = gaussian_blur(dilate(region > 0.05, r.composite_dilate).float()[None], r.composite_dilate / 2)[0]
-        return soft[..., None] * edited + (1 - soft[..., None]) * self.source_renders[index]
+        added = None
+        if self.shape_may_change:
+            cam = self.scene.cameras[index].to(self.device)
+            added = render_selection(self.geometry, self.renderer, cam, self.geometry.generation > 0)
+        return composite_target(edited, self.source_renders[index], self.source_region(index), added,
+                                r.composite_dilate, r.composite_noise_sigmas)
 
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":
