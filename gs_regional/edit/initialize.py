@@ -9,6 +9,7 @@ import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
+from gs_regional.geometry.neighbors import within_radius
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh
 
@@ -73,17 +74,13 @@ def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torc
     return pts_cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
-def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: float, chunk: int = 4096) -> torch.Tensor:
+def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: float) -> torch.Tensor:
     """(K,) bool: points within `max_distance` x (bounding-box diagonal of region_means) of a
     region Gaussian."""
     if region_means.shape[0] == 0 or max_distance <= 0:
         return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
     radius = max_distance * float((region_means.max(0).values - region_means.min(0).values).norm())
-    near = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
-    for s in range(0, points.shape[0], chunk):
-        d = torch.cdist(points[s : s + chunk], region_means)
-        near[s : s + chunk] = d.min(1).values <= radius
-    return near
+    return within_radius(points, region_means, radius)
 
 
 def _rejected(report: dict, reason: str) -> tuple:

@@ -6,6 +6,7 @@ from typing import Sequence
 import torch
 
 from gs_regional.data.cameras import Camera
+from gs_regional.geometry import neighbors
 
 
 def mask_votes(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> tuple:
@@ -55,19 +56,17 @@ def mask_agreement(model, renderer, cameras: Sequence[Camera], masks: Sequence[t
     return torch.tensor(out, device=selected.device)
 
 
-def knn_pool(means: torch.Tensor, num: torch.Tensor, den: torch.Tensor, k: int, chunk: int = 2048) -> tuple:
-    """Sum votes over each Gaussian's k nearest neighbours (itself included), so a Gaussian that
+def neighbourhoods(means: torch.Tensor, k: int) -> torch.Tensor:
+    """(N, min(k, N)) row indices: each Gaussian itself, then its k - 1 nearest other Gaussians
+    (exact; a voxel-grid search, no N x N distances)."""
+    others = neighbors.knn(means, k - 1)[1] if k > 1 else means.new_zeros((means.shape[0], 0), dtype=torch.long)
+    return torch.cat([torch.arange(means.shape[0], device=means.device)[:, None], others], 1)
+
+
+def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) -> tuple:
+    """Sum votes over each Gaussian's neighbourhood (rows of `neighbourhoods`), so a Gaussian that
     few views see well takes the verdict of its well-seen neighbours."""
-    if k <= 1:
-        return num, den
-    n = means.shape[0]
-    k = min(k, n)
-    pn, pd = torch.empty_like(num), torch.empty_like(den)
-    for s in range(0, n, chunk):
-        idx = torch.cdist(means[s : s + chunk], means).topk(k, largest=False).indices
-        pn[s : s + chunk] = num[idx].sum(1)
-        pd[s : s + chunk] = den[idx].sum(1)
-    return pn, pd
+    return num[neighbourhood].sum(1), den[neighbourhood].sum(1)
 
 
 def localize_gaussians(
@@ -85,12 +84,14 @@ def localize_gaussians(
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,)}.
     """
     num, den = mask_votes(model, renderer, cameras, masks)
-    means = model.means.detach()
+    # the neighbours do not change between reweighting passes: found once
+    neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
     weights = torch.ones(len(cameras), device=num.device)
     for it in range(reweight_iters + 1):
         s_num = (weights[:, None] * num).sum(0)
         s_den = (weights[:, None] * den).sum(0)
-        s_num, s_den = knn_pool(means, s_num, s_den, knn)
+        if neighbourhood is not None:
+            s_num, s_den = knn_pool(s_num, s_den, neighbourhood)
         scores = torch.where(s_den > 1e-8, s_num / s_den.clamp_min(1e-8), torch.zeros_like(s_num))
         selected = scores > threshold
         if it < reweight_iters and bool(selected.any()):
@@ -100,18 +101,12 @@ def localize_gaussians(
     return {"selected": selected, "scores": scores, "view_weights": weights}
 
 
-def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float, chunk: int = 4096) -> torch.Tensor:
+def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float) -> torch.Tensor:
     """Point expansion: also select every Gaussian within `radius` of a selected one."""
     if radius <= 0 or not bool(selected.any()) or bool(selected.all()):
         return selected
-    seeds = means[selected]
     out = selected.clone()
-    for s in range(0, means.shape[0], chunk):
-        part = means[s : s + chunk]
-        near = torch.zeros(part.shape[0], dtype=torch.bool, device=means.device)
-        for t in range(0, seeds.shape[0], chunk):
-            near |= (torch.cdist(part, seeds[t : t + chunk]) <= radius).any(dim=1)
-        out[s : s + chunk] |= near
+    out[~selected] = neighbors.within_radius(means[~selected], means[selected], radius)
     return out
 
 
