@@ -243,3 +243,41 @@ def _write_tmp_scene(tmp_path):
 
 def test_plyerror_is_valueerror():
     assert issubclass(plymod.PlyError, ValueError)
+
+
+def test_big_endian_and_mixed_type_files_read_like_little_endian_float32(tmp_path):
+    # All-float32 files take the vectorised (N, P) path; big-endian ones are converted first, and
+    # an integer extra sends the file down the per-property path: all three must agree bit for bit.
+    cols = _scene_columns(7, 3, seed=5)
+    cols["x"][3] = np.nan  # the non-finite handling runs on every path
+    _write_with_plyfile(tmp_path / "le.ply", cols)
+    rows = np.empty(7, dtype=[(k, ">f4") for k in cols])
+    for k, v in cols.items():
+        rows[k] = v
+    PlyData([PlyElement.describe(rows, "vertex")], byte_order=">").write(str(tmp_path / "be.ply"))
+    _write_with_plyfile(tmp_path / "mixed.ply", {**cols, "label": np.arange(7, dtype=np.int16)})
+    with pytest.warns(UserWarning, match="1 of 7"):
+        ref = read_ply(tmp_path / "le.ply", drop_nonfinite=True)
+    for name in ("be.ply", "mixed.ply"):
+        with pytest.warns(UserWarning, match="1 of 7"):
+            got = read_ply(tmp_path / name, drop_nonfinite=True)
+        for field in ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats", "normals"):
+            a, b = getattr(ref, field), getattr(got, field)
+            assert a.dtype == b.dtype == np.float32 and np.array_equal(_bits(a), _bits(b)), (name, field)
+    assert list(got.extras) == ["label"] and got.extras["label"].tolist() == [0, 1, 2, 4, 5, 6]
+
+
+def test_read_arrays_do_not_alias_the_file(tmp_path):
+    # The vertex block is memory-mapped while reading: what read_ply returns must be copies, or
+    # a later change of the file on disk would show through.
+    path = tmp_path / "s.ply"
+    _write_with_plyfile(path, _scene_columns(5, 1))
+    g = read_ply(path)
+    before = {f: getattr(g, f).copy() for f in ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")}
+    data = bytearray(path.read_bytes())
+    header_end = data.index(b"end_header\n") + len(b"end_header\n")
+    data[header_end:] = bytes(len(data) - header_end)
+    with open(path, "r+b") as f:  # in place: the same inode the mapping was made from
+        f.write(data)
+    for f, v in before.items():
+        assert np.array_equal(getattr(g, f), v), f

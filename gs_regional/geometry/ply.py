@@ -88,7 +88,10 @@ def _load_vertex(path: str) -> np.ndarray:
 
     try:
         with open(path, "rb") as f:
-            ply = PlyData.read(f, mmap=False)
+            # Binary elements without list properties are memory-mapped as one structured numpy
+            # array (plyfile reads any other element, and ASCII files, row by row in Python:
+            # minutes for a million Gaussians). Copy-on-write: the file is never modified.
+            ply = PlyData.read(f, mmap="c")
     except Exception as e:  # plyfile's parse errors, truncated data, bad numbers
         raise PlyError(f"{path}: cannot parse PLY: {type(e).__name__}: {e}") from None
     names = [el.name for el in ply.elements]
@@ -105,6 +108,20 @@ def _load_vertex(path: str) -> np.ndarray:
     if lists:
         raise PlyError(f"{path}: list properties on 'vertex' are not supported: {', '.join(lists)}")
     return vertex.data
+
+
+def _float32_table(data: np.ndarray) -> Optional[np.ndarray]:
+    """(N, P) float32 view of structured rows whose P fields are all packed float32 of one byte
+    order (converted to native order when needed), else None."""
+    fields = [data.dtype.fields[p] for p in data.dtype.names]
+    kinds = {dt.str for dt, _ in fields}
+    if len(kinds) != 1 or next(iter(kinds)) not in ("<f4", ">f4"):
+        return None
+    if data.dtype.itemsize != 4 * len(fields) or [off for _, off in fields] != list(range(0, 4 * len(fields), 4)):
+        return None  # padded or reordered layout: no plain (N, P) view
+    if not data.flags.c_contiguous:
+        return None
+    return data.view(fields[0][0]).reshape(len(data), len(fields)).astype(np.float32, copy=False)
 
 
 def read_ply(path, drop_nonfinite: bool = False) -> PlyGaussians:
@@ -140,16 +157,29 @@ def read_ply(path, drop_nonfinite: bool = False) -> PlyGaussians:
         if data.dtype[p].kind not in "biuf":
             raise PlyError(f"{path}: vertex property '{p}' has unsupported type {data.dtype[p]}")
 
+    # All properties float32 (the INRIA layout and most tools): one (N, P) view of the rows, so
+    # that every check and column copy below is a vectorised numpy operation.
+    table = _float32_table(data)
+    column_of = {p: j for j, p in enumerate(names)}
+
     # Non-finite values: count over every floating property (standard and extra).
     float_names = [p for p in names if data.dtype[p].kind == "f"]
-    bad_rows = np.zeros(n, dtype=bool)
-    bad_props, bad_values = [], 0
-    for p in float_names:
-        bad = ~np.isfinite(data[p])
-        if bad.any():
-            bad_props.append(p)
-            bad_values += int(bad.sum())
-            bad_rows |= bad
+    if table is not None:
+        bad = ~np.isfinite(table)
+        bad_per_prop = bad.sum(0)
+        bad_props = [names[j] for j in np.flatnonzero(bad_per_prop)]
+        bad_values = int(bad_per_prop.sum())
+        bad_rows = bad.any(1)
+        del bad
+    else:
+        bad_rows = np.zeros(n, dtype=bool)
+        bad_props, bad_values = [], 0
+        for p in float_names:
+            bad = ~np.isfinite(data[p])
+            if bad.any():
+                bad_props.append(p)
+                bad_values += int(bad.sum())
+                bad_rows |= bad
     if bad_rows.any():
         what = (
             f"{int(bad_rows.sum())} of {n} Gaussians have NaN/inf values ({bad_values} values, "
@@ -161,9 +191,12 @@ def read_ply(path, drop_nonfinite: bool = False) -> PlyGaussians:
             raise PlyError(f"{path}: {what}; no Gaussians would remain")
         warnings.warn(f"{path}: {what}; dropping them", stacklevel=2)
         data = data[~bad_rows]
+        table = None if table is None else table[~bad_rows]
         n = len(data)
 
     def cols(props: List[str]) -> np.ndarray:
+        if table is not None:
+            return np.ascontiguousarray(table[:, [column_of[p] for p in props]], dtype=np.float32)
         return np.stack([np.asarray(data[p], dtype=np.float32) for p in props], axis=1)
 
     k1 = (degree + 1) ** 2 - 1
@@ -237,11 +270,14 @@ def write_ply(path, g: PlyGaussians) -> None:
     )
     dtype = [(p, "<f4") for p in standard]
     dtype += [(p, np.dtype(a.dtype).newbyteorder("<").str) for p, a in g.extras.items()]
-    rows = np.empty(n, dtype=dtype)
-    for i, p in enumerate(standard):
-        rows[p] = columns[:, i]
-    for p, a in g.extras.items():
-        rows[p] = a
+    if g.extras:
+        rows = np.empty(n, dtype=dtype)
+        for i, p in enumerate(standard):
+            rows[p] = columns[:, i]
+        for p, a in g.extras.items():
+            rows[p] = a
+    else:  # all float32: the (N, P) array already is the rows' bytes
+        rows = np.ascontiguousarray(columns, dtype="<f4").view(np.dtype(dtype))[:, 0]
     element = PlyElement.describe(rows, "vertex")
     with atomic_write(path) as tmp:
         PlyData([element], text=False, byte_order="<").write(tmp)
