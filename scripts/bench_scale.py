@@ -4,9 +4,10 @@
     python scripts/bench_scale.py --sizes 100000 1000000 --out DIR
     python scripts/bench_scale.py --quick --out DIR          # 10k and 30k: a check, not a measurement
 
-Writes DIR/bench_scale.json, {stage: {N: {"seconds": s, "peak_bytes": b}}}, and prints a table with
-the growth exponent of every stage between consecutive sizes (log(t2/t1) / log(N2/N1): 1 is
-linear). Stages:
+Writes DIR/bench_scale.json, {stage: {N: {"seconds": s, "peak_bytes": b, "cpu_seconds": c}}}, and
+prints a table with the growth exponent of every stage's wall seconds between consecutive sizes
+(log(t2/t1) / log(N2/N1): 1 is linear). cpu_seconds (all threads of the process) is the steadier
+number on a machine shared with other work. Stages:
 
   ply_save       GaussianModel.save_ply
   ply_load       GaussianModel.from_ply (the file is in the page cache: written just before)
@@ -35,6 +36,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -244,11 +246,16 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
         raise ValueError(f"unknown stage {stage!r}; stages: {STAGES}")
 
     with PeakMemory(device) as mem:
-        t0 = time.perf_counter()
+        c0, t0 = _cpu_seconds(), time.perf_counter()
         run()
         sync()
-        seconds = time.perf_counter() - t0
-    return {"seconds": round(seconds, 4), "peak_bytes": int(mem.peak)}
+        seconds, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
+    return {"seconds": round(seconds, 4), "peak_bytes": int(mem.peak), "cpu_seconds": round(cpu, 3)}
+
+
+def _cpu_seconds() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)  # all threads of this process
+    return r.ru_utime + r.ru_stime
 
 
 # --------------------------------------------------------------------------------- the driver
@@ -274,7 +281,8 @@ def _short(n: int) -> str:
 def format_table(results: dict) -> str:
     sizes = sorted({int(n) for by_n in results.values() for n in by_n})
     exps = growth_exponents(results)
-    head = ["stage"] + [f"{n:,} s" for n in sizes] + [f"{n:,} peak MiB" for n in sizes]
+    head = ["stage"] + [f"{_short(n)} s" for n in sizes] + [f"{_short(n)} CPU s" for n in sizes]
+    head += [f"{_short(n)} peak MiB" for n in sizes]
     head += [f"exp {_short(a)}→{_short(b)}" for a, b in zip(sizes, sizes[1:])]
     rows = []
     for stage in results:
@@ -282,6 +290,9 @@ def format_table(results: dict) -> str:
         for n in sizes:
             e = results[stage].get(str(n), {})
             cells.append(f"{e['seconds']:.2f}" if e.get("seconds") is not None else ("failed" if e else "-"))
+        for n in sizes:
+            e = results[stage].get(str(n), {})
+            cells.append(f"{e['cpu_seconds']:.2f}" if e.get("cpu_seconds") is not None else "-")
         for n in sizes:
             e = results[stage].get(str(n), {})
             cells.append(f"{e['peak_bytes'] / 2**20:.0f}" if e.get("peak_bytes") is not None else "-")

@@ -21,7 +21,8 @@ def test_bench_scale_quick_writes_json_and_table(tmp_path):
     for stage, by_n in results.items():
         assert sorted(by_n, key=int) == ["10000", "30000"], stage
         for n, entry in by_n.items():
-            assert entry["seconds"] > 0 and isinstance(entry["peak_bytes"], int) and entry["peak_bytes"] >= 0, (stage, n, entry)
+            assert entry["seconds"] > 0 and entry["cpu_seconds"] >= 0, (stage, n, entry)
+            assert isinstance(entry["peak_bytes"], int) and entry["peak_bytes"] >= 0, (stage, n, entry)
     # the table: one row per stage with a growth exponent between the two sizes
     assert "exp 10k→30k" in proc.stdout
     for stage in STAGES:

@@ -17,8 +17,6 @@ from typing import Iterator, Tuple
 
 import torch
 
-# Neighbouring cells of a cell (itself included).
-_OFFSETS = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
 
 
 def morton_order(points: torch.Tensor) -> torch.Tensor:
@@ -41,20 +39,21 @@ class VoxelGrid:
     cells around a query hold every reference point within distance `cell` of it.
 
     `cell` should be a power of two: then `x / cell` is exact and so is the cell a point falls in,
-    which makes that guarantee hold in floating point too.
+    which makes that guarantee hold in floating point too. Keys are row-major with z fastest, so
+    the three cells (x, y, z-1..z+1) are one contiguous run of the sorted points: 9 runs per cell.
     """
 
     def __init__(self, points: torch.Tensor, cell: float, index: torch.Tensor = None) -> None:
         self.cell = float(cell)
         index = torch.arange(points.shape[0], device=points.device) if index is None else index
         cells = self.cell_of(points)
-        # one spare cell on every side: the neighbours of any cell inside stay inside the key range
+        # one empty cell on every side: a neighbour key that wraps around a row end lands in one
         self.lo = cells.min(0).values - 1
         self.dims = cells.max(0).values - self.lo + 2
         keys, order = torch.sort(self.key(cells))
         self.sorted_index = index[order]  # reference point indices, grouped by cell
-        self.keys, self.counts = torch.unique_consecutive(keys, return_counts=True)
-        self.starts = torch.cumsum(self.counts, 0) - self.counts
+        self.keys, counts = torch.unique_consecutive(keys, return_counts=True)
+        self.bounds = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])  # cell j: bounds[j]..bounds[j+1]
 
     def cell_of(self, points: torch.Tensor) -> torch.Tensor:
         return torch.floor(points / self.cell).long()
@@ -63,26 +62,31 @@ class VoxelGrid:
         c = cells - self.lo
         return (c[..., 0] * self.dims[1] + c[..., 1]) * self.dims[2] + c[..., 2]
 
-    def neighbour_runs(self, cells: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """(starts, counts), each (M, 27): the runs of `sorted_index` holding the reference points
-        of the 27 cells around each of M cells (count 0 for empty cells). Cells must lie within
-        the grid's range (the reference points' cells, one more on each side)."""
-        key = self.key(cells[:, None, :] + torch.tensor(_OFFSETS, device=cells.device))  # (M, 27)
-        pos = torch.searchsorted(self.keys, key).clamp_max(self.keys.numel() - 1)
-        return self.starts[pos], torch.where(self.keys[pos] == key, self.counts[pos], 0)
+    def contains(self, cells: torch.Tensor) -> torch.Tensor:
+        """Whether cells lie in the grid's range (the points' cells and one more on each side)."""
+        return ((cells >= self.lo) & (cells < self.lo + self.dims)).all(-1)
 
-    def candidate_blocks(self, queries: torch.Tensor, max_pairs: int) -> Iterator[tuple]:
+    def neighbour_runs(self, cells: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """(starts, counts), each (M, 9): the runs of `sorted_index` holding the reference points
+        of the 27 cells around each of M cells (in the grid's range, see `contains`)."""
+        xy = torch.tensor([(i, j, 0) for i in (-1, 0, 1) for j in (-1, 0, 1)], device=cells.device)
+        key = self.key(cells[:, None, :] + xy)  # (M, 9): the middle cell of each z-run
+        first = torch.searchsorted(self.keys, key - 1)
+        end = torch.searchsorted(self.keys, key + 1, right=True)
+        starts = self.bounds[first]
+        return starts, self.bounds[end] - starts
+
+    def candidate_blocks(self, queries: torch.Tensor, max_pairs: int, pad: int) -> Iterator[tuple]:
         """Yields (rows, cell_of_row, candidates): query rows, for each the block-local index of its
         cell, and per cell of the block the reference points of its 27 neighbouring cells, padded
-        with -1 to the block's widest cell: (cells, width). Queries of one cell share one candidate
-        list, and cells of similar candidate counts are blocked together so that the
+        with `pad` to the block's widest cell: (cells, width). Queries of one cell share one
+        candidate list, and cells of similar candidate counts are blocked together so that the
         (len(rows), width) distance matrices stay tight and under about `max_pairs` entries."""
         dev = queries.device
         qkey, qorder = torch.sort(self.key(self.cell_of(queries)))
         ukey, qcount = torch.unique_consecutive(qkey, return_counts=True)
         qstart = torch.cumsum(qcount, 0) - qcount
-        cells = self.cell_of(queries[qorder[qstart]])
-        starts, counts = self.neighbour_runs(cells)
+        starts, counts = self.neighbour_runs(self.cell_of(queries[qorder[qstart]]))
         width, cell_order = torch.sort(counts.sum(1))
         cost = torch.cumsum(qcount[cell_order], 0)  # queries in cells 0..j of `cell_order`
         c0 = 0
@@ -97,18 +101,19 @@ class VoxelGrid:
             m = int(run_counts.sum())
             run = torch.repeat_interleave(torch.arange(run_counts.numel(), device=dev), run_counts, output_size=m)
             run_first = torch.cumsum(run_counts, 0) - run_counts
-            flat = run_starts[run] + torch.arange(m, device=dev) - run_first[run]
-            owner = run // len(_OFFSETS)
-            cell_total = width[c0:c1]
-            col = torch.arange(m, device=dev) - (torch.cumsum(cell_total, 0) - cell_total)[owner]
-            candidates = torch.full((block.numel(), w), -1, dtype=torch.long, device=dev)
-            candidates[owner, col] = self.sorted_index[flat]
+            ramp = torch.arange(m, device=dev)
+            source = run_starts[run] + ramp - run_first[run]  # position in sorted_index
+            owner = run // 9
+            cell_first = torch.cumsum(width[c0:c1], 0) - width[c0:c1]
+            target = owner * w + ramp - cell_first[owner]  # position in the padded (cells, w) matrix
+            candidates = torch.full((block.numel() * w,), pad, dtype=torch.long, device=dev)
+            candidates.index_copy_(0, target, self.sorted_index.index_select(0, source))
             # the queries of these cells, each with its cell's block-local index
             nq = qcount[block]
             cell_of_row = torch.repeat_interleave(torch.arange(block.numel(), device=dev), nq)
             q_first = torch.cumsum(nq, 0) - nq
             rows = qorder[qstart[block][cell_of_row] + torch.arange(int(nq.sum()), device=dev) - q_first[cell_of_row]]
-            yield rows, cell_of_row, candidates
+            yield rows, cell_of_row, candidates.view(block.numel(), w)
             c0 = c1
 
 
@@ -122,7 +127,7 @@ def _finest_cell_exponent(points: torch.Tensor) -> int:
 
 def _padded_columns(points: torch.Tensor) -> torch.Tensor:
     """(3, N + 1): the coordinates one axis per row (gathers and arithmetic on contiguous rows),
-    followed by a column of inf that the padding index -1 picks."""
+    followed by a column of inf that the padding index N picks."""
     return torch.cat([points, points.new_full((1, 3), math.inf)]).T.contiguous()
 
 
@@ -131,8 +136,9 @@ def _sq_dists_to_candidates(columns: torch.Tensor, queries: torch.Tensor, cell_o
     summed over x, y, z in that order like a brute-force `((a - b) ** 2).sum(-1)`."""
     out = None
     for axis in range(3):
-        cand = columns[axis][candidates]  # (cells, width): gathered once per cell
-        d = cand[cell_of_row] - queries[:, axis, None]
+        # index_select: several times faster on CPU than advanced indexing
+        cand = columns[axis].index_select(0, candidates.reshape(-1)).view(candidates.shape)  # once per cell
+        d = cand.index_select(0, cell_of_row) - queries[:, axis, None]
         out = d * d if out is None else out.add_(d.mul_(d))
     return out
 
@@ -183,13 +189,27 @@ def knn(points: torch.Tensor, k: int, window: int = 32, max_pairs: int = 1 << 22
         lo, hi = p[group].min(0).values - h, p[group].max(0).values + h
         near = ((p >= lo) & (p <= hi)).all(1).nonzero().squeeze(1)
         grid = VoxelGrid(p[near], h, index=near)
-        for rows, cell_of_row, candidates in grid.candidate_blocks(p[group], max_pairs):
+        for rows, cell_of_row, candidates in grid.candidate_blocks(p[group], max_pairs, pad=n):
             qi = group[rows]
             dist = _sq_dists_to_candidates(p_columns, p[qi], cell_of_row, candidates)
+            # Only candidates within the upper bound can be among the k nearest (the query and
+            # at least k others are): a few dozen of the hundreds per row. Compacting them first
+            # makes the top-k cheap. The slack covers rounding of the bound.
+            width = dist.shape[1]
+            flat = (dist <= ub[qi, None] * (1 + 1e-6)).view(-1).nonzero().squeeze(1)
+            row = flat // width
+            per_row = torch.bincount(row, minlength=qi.numel())
+            target = row * int(per_row.max()) + torch.arange(row.numel(), device=dev) - (torch.cumsum(per_row, 0) - per_row)[row]
+            near_d = torch.full((qi.numel() * int(per_row.max()),), math.inf, device=dev)
+            near_i = torch.full_like(near_d, n, dtype=torch.long)
+            near_d.index_copy_(0, target, dist.view(-1).index_select(0, flat))
+            cand_flat = cell_of_row.index_select(0, row) * width + flat - row * width
+            near_i.index_copy_(0, target, candidates.view(-1).index_select(0, cand_flat))
+            near_d, near_i = near_d.view(qi.numel(), -1), near_i.view(qi.numel(), -1)
             # k + 1 nearest, then drop the query itself (or, if it is not among them because
             # more than k duplicates tie at distance 0, the last one)
-            vals, pos = dist.topk(k + 1, dim=1, largest=False)
-            idx = candidates[cell_of_row[:, None], pos]
+            vals, pos = near_d.topk(k + 1, dim=1, largest=False)
+            idx = near_i.gather(1, pos)
             is_self = idx == qi[:, None]
             keep = ~is_self
             keep[:, -1] &= is_self.any(1)
@@ -221,9 +241,8 @@ def within_radius(points: torch.Tensor, seeds: torch.Tensor, radius: float, max_
     open_ = ((p >= s.min(0).values - reach) & (p <= s.max(0).values + reach)).all(1).nonzero().squeeze(1)
     for level in range(max(last - 3, finest), last + 1):
         grid = VoxelGrid(s, 2.0**level)
-        c = grid.cell_of(p[open_])
-        queries = open_[((c >= grid.lo) & (c < grid.lo + grid.dims)).all(1)]  # others have no seed around
-        for rows, cell_of_row, seed_blocks in grid.candidate_blocks(p[queries], max_pairs):
+        queries = open_[grid.contains(grid.cell_of(p[open_]))]  # the others have no seed around
+        for rows, cell_of_row, seed_blocks in grid.candidate_blocks(p[queries], max_pairs, pad=s.shape[0]):
             qi = queries[rows]
             near[qi] = (_sq_dists_to_candidates(s_columns, p[qi], cell_of_row, seed_blocks) <= r2).any(1)
         open_ = open_[~near[open_]]

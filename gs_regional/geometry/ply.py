@@ -254,20 +254,16 @@ def write_ply(path, g: PlyGaussians) -> None:
     if clash:
         raise PlyError(f"{path}: cannot write: extra properties clash with standard ones: {clash}")
 
-    normals = g.normals if g.normals is not None else np.zeros((n, 3), dtype=np.float32)
-    rest = np.asarray(g.sh_rest, dtype=np.float32).transpose(0, 2, 1).reshape(n, 3 * k1)  # channel-major
-    columns = np.concatenate(
-        [
-            np.asarray(g.means, dtype=np.float32),
-            np.asarray(normals, dtype=np.float32),
-            np.asarray(g.sh_dc, dtype=np.float32),
-            rest,
-            np.asarray(g.opacity_logits, dtype=np.float32).reshape(n, 1),
-            np.asarray(g.log_scales, dtype=np.float32),
-            np.asarray(g.quats, dtype=np.float32),
-        ],
-        axis=1,
-    )
+    # The standard properties as one (N, P) float32 array, filled in place (no concatenation).
+    columns = np.empty((n, len(standard)), dtype="<f4")
+    columns[:, 0:3] = g.means
+    columns[:, 3:6] = 0.0 if g.normals is None else g.normals
+    columns[:, 6:9] = g.sh_dc
+    # channel-major f_rest; the reshape of the column block is a view (its strides allow it)
+    columns[:, 9 : 9 + 3 * k1].reshape(n, 3, k1)[:] = np.asarray(g.sh_rest).transpose(0, 2, 1)
+    columns[:, 9 + 3 * k1] = g.opacity_logits
+    columns[:, -7:-4] = g.log_scales
+    columns[:, -4:] = g.quats
     dtype = [(p, "<f4") for p in standard]
     dtype += [(p, np.dtype(a.dtype).newbyteorder("<").str) for p, a in g.extras.items()]
     if g.extras:
@@ -277,7 +273,7 @@ def write_ply(path, g: PlyGaussians) -> None:
         for p, a in g.extras.items():
             rows[p] = a
     else:  # all float32: the (N, P) array already is the rows' bytes
-        rows = np.ascontiguousarray(columns, dtype="<f4").view(np.dtype(dtype))[:, 0]
+        rows = columns.view(np.dtype(dtype))[:, 0]
     element = PlyElement.describe(rows, "vertex")
     with atomic_write(path) as tmp:
         PlyData([element], text=False, byte_order="<").write(tmp)
