@@ -50,7 +50,7 @@ import torch  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 # Imported once here: the stages run in forked children that share them.
-from gs_regional.data.synthetic import look_at  # noqa: E402
+from gs_regional.sim.scene import look_at  # noqa: E402
 from gs_regional.edit.localize import (  # noqa: E402
     expand_selection, knn_pool, localize_gaussians, neighbourhoods, render_selection,
 )
