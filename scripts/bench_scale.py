@@ -19,8 +19,10 @@ number on a machine shared with other work. Stages:
                  256x256 (--localize-views, --localize-size), 2 reweighting passes (a render per
                  view each), kNN pooling (neighbours found once), point expansion
                  (radius 1% of the scene extent) and the selection rendered back into the 24 views
-  append         depth initialization's GaussianModel.append of N/100 new Gaussians (with Adam state)
-  densify_prune  one GaussianModel.densify_and_prune step (about 2% cloned or split, 1% pruned)
+  append         depth initialization's append (geometry.rows.append) of N/100 new Gaussians, with
+                 Adam state
+  densify_prune  one DensifyStrategy.densify_and_prune step over the whole scene (about 2% cloned
+                 or split, 1% pruned)
 
 Every (stage, N) runs in a fresh child process: its peak memory is the growth of the process's
 resident set (VmHWM, reset through /proc/self/clear_refs just before the stage) over what the
@@ -54,7 +56,9 @@ from gs_regional.sim.scene import look_at  # noqa: E402
 from gs_regional.edit.localize import (  # noqa: E402
     expand_selection, knn_pool, localize_gaussians, neighbourhoods, render_selection,
 )
+from gs_regional.geometry import rows  # noqa: E402
 from gs_regional.geometry.gaussian_model import GaussianModel  # noqa: E402
+from gs_regional.geometry.strategy import DensifyStrategy  # noqa: E402
 from gs_regional.registry import find  # noqa: E402
 from gs_regional.systems.regional_edit import LocalizeConfig  # noqa: E402
 
@@ -228,10 +232,9 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
             m = max(1, n // 100)
             new = make_splat(m, seed=2)
             params = {k: getattr(new, k).detach().to(device) for k in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")}
-            ones = torch.ones(m, dtype=torch.bool, device=device)
 
-            def run():
-                model.append(params, mask=ones, generation=ones.long(), optimizer=opt)
+            def run():  # as the regional edit adds the Gaussians made from depth
+                rows.append(model, params, optimizer=opt, mask=True, generation=1)
         else:
             with torch.no_grad():
                 # ~2% of the Gaussians above the gradient threshold, ~1% below the opacity floor
@@ -240,8 +243,11 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
                 low = torch.rand(n, generator=gen).to(device) < 0.01
                 model.opacity_logits[low] = -8.0
 
+            # the whole scene, as `reconstruct` densifies it
+            strategy = DensifyStrategy(grad_threshold=2e-4, max_gaussians=None, only_trainable=False)
+
             def run():
-                model.densify_and_prune(grad_threshold=2e-4, scene_extent=SCENE_EXTENT, optimizer=opt, generator=gen)
+                strategy.densify_and_prune(model, SCENE_EXTENT, opt, generator=gen)
     else:
         raise ValueError(f"unknown stage {stage!r}; stages: {STAGES}")
 

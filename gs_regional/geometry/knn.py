@@ -6,20 +6,7 @@ import math
 
 import torch
 
-
-def _morton_order(points: torch.Tensor) -> torch.Tensor:
-    """Permutation sorting points along a Z-order curve (10 bits per axis)."""
-    lo, hi = points.min(0).values, points.max(0).values
-    q = ((points - lo) / (hi - lo).clamp_min(1e-12) * 1023).long().clamp(0, 1023)
-
-    def spread(v: torch.Tensor) -> torch.Tensor:  # insert two zero bits between the bits of v
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2)
-    return torch.argsort(code, stable=True)
+from gs_regional.geometry.neighbors import morton_order
 
 
 def knn_sq_dists(points: torch.Tensor, k: int = 3, window: int = 16, max_pairs: int = 1 << 20) -> torch.Tensor:
@@ -39,7 +26,7 @@ def knn_sq_dists(points: torch.Tensor, k: int = 3, window: int = 16, max_pairs: 
     p = points.float()
     p = p - p.mean(0)
 
-    order = _morton_order(p)
+    order = morton_order(p)
     ps = p[order]
     w = max(window, k)
     d = torch.full((n, 2 * w), math.inf, device=dev)
