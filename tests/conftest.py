@@ -13,7 +13,8 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # Idle OpenMP threads sleep instead of spinning (see launch.py); set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# ../shared/data beside the checkout; GS_REGIONAL_DATA points elsewhere (e.g. from a git worktree).
+SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 
 
 class NetworkAccessError(RuntimeError):
@@ -37,7 +38,7 @@ def shared_path(*parts: str) -> Path:
     """A path under ../shared/data, or skip the test with a clear reason."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the checkout)")
+        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the checkout, or set GS_REGIONAL_DATA)")
     return p
 
 

@@ -7,6 +7,7 @@ import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
+from gs_regional.metrics.region import mask_metrics  # noqa: F401  (re-exported: callers import it from here)
 
 
 def mask_votes(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> tuple:
@@ -116,15 +117,3 @@ def render_selection(model, renderer, camera: Camera, selected: torch.Tensor) ->
     pixel's colour that comes from selected Gaussians."""
     feat = selected.float()[:, None].to(model.means.device)
     return renderer.render(model, camera, override_color=feat)["rgb"][..., 0].clamp(0, 1)
-
-
-def mask_metrics(pred: torch.Tensor, truth: torch.Tensor) -> dict:
-    """IoU, precision, recall of two boolean per-Gaussian masks."""
-    pred, truth = pred.bool(), truth.bool()
-    inter = float((pred & truth).sum())
-    union = float((pred | truth).sum())
-    return {
-        "mask_iou": inter / union if union else 1.0,
-        "mask_precision": inter / float(pred.sum()) if pred.any() else 0.0,
-        "mask_recall": inter / float(truth.sum()) if truth.any() else 1.0,
-    }

@@ -323,12 +323,14 @@ def make_scene(seed: int = 0, n_object: int = 6000, n_background: int = 4000) ->
     return _to_model(a), a.labels.clone(), list(PART_NAMES)
 
 
-def look_at(center, target, width: int, height: int, fov_deg: float = CAMERA_FOV, name: str = "") -> Camera:
-    """An OpenCV-convention camera at `center` looking at `target` with world +y up."""
+def look_at(center, target, width: int, height: int, fov_deg: float = CAMERA_FOV, name: str = "",
+            up=(0.0, 1.0, 0.0)) -> Camera:
+    """An OpenCV-convention camera at `center` looking at `target`, with `up` (world +y by default)
+    pointing up in the image; `up` must not be parallel to the viewing direction."""
     c = torch.as_tensor(center, dtype=torch.float64)
     fwd = torch.as_tensor(target, dtype=torch.float64) - c
     fwd = fwd / fwd.norm()
-    right = torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    right = torch.linalg.cross(fwd, torch.as_tensor(up, dtype=torch.float64))
     right = right / right.norm()
     down = torch.linalg.cross(fwd, right)
     R = torch.stack([right, down, fwd])  # rows: camera axes in world coordinates

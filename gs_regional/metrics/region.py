@@ -1,0 +1,95 @@
+"""Metrics that see the edited region (issue 11 §1), as pure functions of images and masks.
+
+Images are (..., H, W, 3) in [0, 1]; pixel masks are (..., H, W) bool over the same views. Scores
+pool every masked pixel of every view (one PSNR over all of them, not a mean of per-view PSNRs).
+A score over an empty set of pixels is None, never NaN or an infinite PSNR.
+
+  footprint     pixels the true edit is about: the rendered weight of the true region (and of
+                the Gaussians the edit adds) above a threshold.
+  inside/outside the footprint: the result against the true edit, and the same for doing nothing
+                (the source renders against the true edit), so every number has its baseline.
+  silhouette/background: the unedited pixels split by where the source renders opaque, so that a
+                black background cannot hide a halo of changes around the object.
+"""
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+
+from gs_regional.metrics.image import psnr, ssim
+
+
+def footprint(weights: torch.Tensor, threshold: float = 0.1) -> torch.Tensor:
+    """(..., H, W) bool: pixels whose rendered weight of the true edited region exceeds `threshold`."""
+    return weights > threshold
+
+
+def _checked(images: Dict[str, torch.Tensor], mask: torch.Tensor) -> None:
+    shapes = {k: tuple(v.shape) for k, v in images.items()}
+    first = next(iter(shapes.values()))
+    if any(s != first for s in shapes.values()) or first[-1] != 3:
+        raise ValueError(f"images must share one (..., H, W, 3) shape, got {shapes}")
+    if tuple(mask.shape) != first[:-1] or mask.dtype != torch.bool:
+        raise ValueError(f"mask must be a bool tensor of shape {first[:-1]}, got {mask.dtype} {tuple(mask.shape)}")
+
+
+def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> Optional[float]:
+    """PSNR (dB) of a against b over the pixels of `mask`; None if the mask is empty."""
+    _checked({"a": a, "b": b}, mask)
+    return psnr(a, b, mask) if bool(mask.any()) else None
+
+
+def masked_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> Optional[float]:
+    """Mean of the SSIM map (11x11 Gaussian window over the whole image) over the pixels of
+    `mask`; None if the mask is empty."""
+    _checked({"a": a, "b": b}, mask)
+    return ssim(a, b, mask) if bool(mask.any()) else None
+
+
+def region_scores(result: torch.Tensor, source: torch.Tensor, truth: torch.Tensor, inside: torch.Tensor) -> Dict[str, Optional[float]]:
+    """PSNR and SSIM of the result and of doing nothing (`source`) against the true edit, inside
+    the footprint `inside` and outside it."""
+    _checked({"result": result, "source": source, "truth": truth}, inside)
+    out: Dict[str, Optional[float]] = {}
+    for where, mask in (("region", inside), ("outside", ~inside)):
+        for name, images in (("", result), ("_source", source)):
+            out[f"psnr_{where}{name}_vs_true_edit"] = masked_psnr(images, truth, mask)
+            out[f"ssim_{where}{name}_vs_true_edit"] = masked_ssim(images, truth, mask)
+    return out
+
+
+def silhouette_split(unedited: torch.Tensor, source_alpha: torch.Tensor, opaque: float = 0.5) -> Dict[str, torch.Tensor]:
+    """The unedited pixels where the source renders opaque (alpha > `opaque`: the object's
+    silhouette, minus the edit) and the rest of them (the background)."""
+    if tuple(source_alpha.shape) != tuple(unedited.shape):
+        raise ValueError(f"source_alpha {tuple(source_alpha.shape)} and unedited {tuple(unedited.shape)} differ in shape")
+    solid = source_alpha > opaque
+    return {"silhouette": unedited & solid, "background": unedited & ~solid}
+
+
+def unedited_scores(result: torch.Tensor, source: torch.Tensor, unedited: torch.Tensor, source_alpha: torch.Tensor,
+                    opaque: float = 0.5) -> Dict[str, Optional[float]]:
+    """PSNR and SSIM of the result against the source renders on the unedited pixels, on the
+    object's silhouette and on the background separately."""
+    _checked({"result": result, "source": source}, unedited)
+    out: Dict[str, Optional[float]] = {}
+    for where, mask in silhouette_split(unedited, source_alpha, opaque).items():
+        out[f"psnr_unedited_{where}"] = masked_psnr(result, source, mask)
+        out[f"ssim_unedited_{where}"] = masked_ssim(result, source, mask)
+    return out
+
+
+def mask_metrics(pred: torch.Tensor, truth: torch.Tensor) -> Dict[str, Optional[float]]:
+    """IoU, precision and recall of a boolean per-Gaussian mask against the true one; a ratio
+    whose denominator is empty (nothing predicted, nothing true, neither) is None."""
+    pred, truth = pred.bool(), truth.bool()
+    if pred.shape != truth.shape:
+        raise ValueError(f"mask_metrics: masks differ in shape, {tuple(pred.shape)} vs {tuple(truth.shape)}")
+    inter = float((pred & truth).sum())
+    union = float((pred | truth).sum())
+    return {
+        "mask_iou": inter / union if union else None,
+        "mask_precision": inter / float(pred.sum()) if pred.any() else None,
+        "mask_recall": inter / float(truth.sum()) if truth.any() else None,
+    }

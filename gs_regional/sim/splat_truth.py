@@ -1,0 +1,311 @@
+"""Known edits of ANY trained splat: the yardstick of the synthetic scene, on real scenes.
+
+`splat-truth` (`SplatTruthDataModule`) loads a trained INRIA-layout PLY (never copied), takes its
+cameras from any camera source the data package reads (`data.cameras`) or generates an orbit
+around the splat, and builds a known edit from the splat itself, as a `GroundTruth`:
+
+  recolor  a part picked by a spatial rule is recoloured to `color` (its shading kept as a
+           luminance factor; view-dependent SH of the part dropped); geometry unchanged.
+           Rules (`select`): `top`, the upper `top_fraction` of the object along `up` (the icing
+           side of a donut); `ball`, the Gaussians within `ball_radius` of `anchor`.
+           `related`: what lies just outside the part (the band below it / a shell around it).
+  add      a new compact object (a "cherry": a sphere of `add_count` small, opaque, flat Gaussians
+           of one colour, shaded from above) resting on the surface seen from `up` at `anchor`.
+           `region` = the splat's Gaussians within `region_radius` sphere radii of it (the part
+           it sits on, what an editor's mask selects); `new_region` = those and the new rows.
+           `related`: the shell out to twice that radius.
+
+Positions (`anchor`, radii, the orbit radius) are in units of the OBJECT RADIUS from the OBJECT
+CENTRE: half the diagonal and the middle of the box spanned by the 2%-98% quantiles of the
+opaque Gaussians' positions (robust to floaters), so one config fits splats of any scale.
+`front` (the direction the edit faces, what the simulated editor's side-view misses are measured
+from) defaults to `up`. Everything is deterministic given the config (`seed`).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence, Tuple
+
+import torch
+
+from gs_regional.config import ConfigError, parse_structured
+from gs_regional.data.cameras import Camera
+from gs_regional.data.datamodule import SceneDataModuleBase
+from gs_regional.data.loaders import load_cameras
+from gs_regional.data.scene import SceneData, split_every
+from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.registry import register
+from gs_regional.renderers.sh import rgb_to_sh, sh_to_rgb
+from gs_regional.sim.scene import _cov_to_gaussian, _Ellipsoid, _sample_ellipsoid, look_at
+from gs_regional.sim.truth import GroundTruth
+
+EDIT_NAMES = ("recolor", "add")
+SELECT_RULES = ("top", "ball")
+OPAQUE = 0.5  # Gaussians above this opacity define the object's extent and its surface
+_LUMA = (0.299, 0.587, 0.114)
+
+
+def _unit(v, what: str) -> torch.Tensor:
+    v = torch.as_tensor(v, dtype=torch.float32).reshape(-1)
+    if v.shape != (3,) or float(v.norm()) < 1e-9:
+        raise ConfigError(f"{what} must be a non-zero 3-vector, got {v.tolist()}")
+    return v / v.norm()
+
+
+def _column_quantiles(x: torch.Tensor, q: float) -> torch.Tensor:
+    """Per-column q-quantile of (N, D) by order statistic (torch.quantile refuses > 16M entries)."""
+    k = min(max(int(round(q * (x.shape[0] - 1))) + 1, 1), x.shape[0])
+    return x.kthvalue(k, dim=0).values
+
+
+def object_frame(model: GaussianModel) -> Tuple[torch.Tensor, float]:
+    """(centre (3,), radius) of the object: middle and half diagonal of the 2%-98% quantile box
+    of the opaque Gaussians' positions (all Gaussians if none is opaque)."""
+    means = model.means.detach()
+    opaque = model.opacities.detach() > OPAQUE
+    pts = means[opaque] if int(opaque.sum()) >= 10 else means
+    lo, hi = _column_quantiles(pts, 0.02), _column_quantiles(pts, 0.98)
+    return ((lo + hi) / 2).float(), float((hi - lo).norm() / 2)
+
+
+def _horizontal_basis(up: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors spanning the plane perpendicular to `up` (the first from the world axis
+    least aligned with it), so that (e1, e2, up) is right-handed."""
+    axis = torch.zeros(3)
+    axis[int(up.abs().argmin())] = 1.0
+    e1 = axis - (axis @ up) * up
+    e1 = e1 / e1.norm()
+    return e1, torch.linalg.cross(up, e1)
+
+
+def orbit_cameras(center: torch.Tensor, distance: float, up: torch.Tensor, n: int, elevations: Sequence[float],
+                  azimuth_span: float, width: int, height: int, fov_deg: float) -> List[Camera]:
+    """n cameras on rings at `elevations` (degrees above the plane perpendicular to `up`), split
+    evenly between the rings (first ring first), at evenly spaced azimuths over `azimuth_span`
+    degrees (360: a full orbit), `distance` from `center` and looking at it, `up` up."""
+    if n < 2 or not elevations:
+        raise ConfigError(f"orbit cameras: need n >= 2 and at least one elevation, got n={n}, {list(elevations)}")
+    if any(abs(e) >= 89.0 for e in elevations):
+        raise ConfigError(f"orbit cameras: elevations must be within (-89, 89) degrees, got {list(elevations)}")
+    e1, e2 = _horizontal_basis(up)
+    rings = len(elevations)
+    counts = [n // rings + (1 if k < n % rings else 0) for k in range(rings)]
+    full = azimuth_span >= 360.0
+    cams = []
+    for elev, count in zip(elevations, counts):
+        if full:
+            azs = [360.0 * k / count for k in range(count)]
+        else:
+            azs = torch.linspace(-azimuth_span / 2, azimuth_span / 2, count).tolist() if count > 1 else [0.0]
+        e = math.radians(elev)
+        for az in azs:
+            a = math.radians(az)
+            d = math.cos(e) * (math.cos(a) * e1 + math.sin(a) * e2) + math.sin(e) * up
+            name = f"orbit_{len(cams):03d}_az{az:+04.0f}_el{elev:+03.0f}"
+            cams.append(look_at(center + distance * d, center, width, height, fov_deg=fov_deg, name=name, up=up))
+    return cams
+
+
+# ------------------------------------------------------------------------------------- selections
+def select_top(model: GaussianModel, up: torch.Tensor, fraction: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(region, related): Gaussians in the upper `fraction` of the object's height along `up`
+    (2%-98% quantiles of the opaque Gaussians), and the band of half that height just below."""
+    if not 0 < fraction < 1:
+        raise ConfigError(f"data.top_fraction must be in (0, 1), got {fraction}")
+    height = model.means.detach() @ up
+    opaque = model.opacities.detach() > OPAQUE
+    ref = height[opaque] if int(opaque.sum()) >= 10 else height
+    lo, hi = (float(_column_quantiles(ref[:, None], q)[0]) for q in (0.02, 0.98))
+    cut = hi - fraction * (hi - lo)
+    region = height > cut
+    related = (height <= cut) & (height > cut - 0.5 * fraction * (hi - lo))
+    return region, related
+
+
+def select_ball(model: GaussianModel, center: torch.Tensor, radius: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(region, related): Gaussians within `radius` of `center`, and the shell out to twice it."""
+    dist = (model.means.detach() - center).norm(dim=-1)
+    return dist <= radius, (dist > radius) & (dist <= 2 * radius)
+
+
+# ------------------------------------------------------------------------------------------ edits
+def recolor(source: GaussianModel, region: torch.Tensor, color: Sequence[float]) -> GaussianModel:
+    """`source` with the Gaussians of `region` recoloured to `color`: each keeps its luminance
+    relative to the region's median (its shading and texture), view-dependent SH set to zero."""
+    rgb = sh_to_rgb(source.sh_dc.detach()).clamp(0, 1)
+    luma = rgb @ torch.tensor(_LUMA)
+    ref = float(luma[region].median()) if bool(region.any()) else 1.0
+    new = rgb.clone()
+    new[region] = (torch.tensor(color, dtype=torch.float32) * (luma[region] / max(ref, 1e-3))[:, None]).clamp(0, 1)
+    sh_dc = source.sh_dc.detach().clone()
+    sh_dc[region] = rgb_to_sh(new[region])
+    sh_rest = source.sh_rest.detach().clone()
+    sh_rest[region] = 0
+    return GaussianModel.from_tensors(
+        means=source.means.detach(), quats=source.quats.detach(), log_scales=source.log_scales.detach(),
+        opacity_logits=source.opacity_logits.detach(), sh_dc=sh_dc, sh_rest=sh_rest, mask=region,
+    )
+
+
+def surface_point(model: GaussianModel, through: torch.Tensor, direction: torch.Tensor, width: float) -> torch.Tensor:
+    """Where the line through `through` along `direction` leaves the object on the `direction`
+    side: the outermost opaque Gaussian within `width` of the line, projected onto the line."""
+    means = model.means.detach()
+    rel = means - through
+    along = rel @ direction
+    lateral = (rel - along[:, None] * direction).norm(dim=-1)
+    near = (lateral <= width) & (model.opacities.detach() > OPAQUE)
+    if not bool(near.any()):
+        raise ConfigError(
+            f"splat-truth add: no opaque Gaussian within {width:.4g} of the line through the anchor "
+            f"{through.tolist()} along {direction.tolist()}; move data.anchor onto the object"
+        )
+    return through + float(along[near].max()) * direction
+
+
+def sphere_gaussians(center: torch.Tensor, radius: float, count: int, color: Sequence[float], light: torch.Tensor,
+                     seed: int, sh_degree: int) -> GaussianModel:
+    """A sphere of `count` flat, opaque Gaussians tangent to its surface (the synthetic scene's
+    covering), of one colour shaded from `light` (0.7 in the shadow, 1.0 facing it)."""
+    gen = torch.Generator().manual_seed(int(seed) + 4241)
+    part = _Ellipsoid("cherry", tuple(center.tolist()), (radius,) * 3, tuple(color))
+    pts, cov, normals = _sample_ellipsoid(part, int(count), gen)
+    log_scales, quats = _cov_to_gaussian(cov)
+    shade = 0.7 + 0.3 * (normals.float() @ light).clamp_min(0)
+    rgb = (torch.tensor(color, dtype=torch.float32) * shade[:, None]).clamp(0, 1)
+    k1 = (sh_degree + 1) ** 2 - 1
+    opacity = 0.99
+    return GaussianModel.from_tensors(
+        means=pts.float(), quats=quats.float(), log_scales=log_scales.float(),
+        opacity_logits=torch.full((len(pts),), math.log(opacity / (1 - opacity))), sh_dc=rgb_to_sh(rgb),
+        sh_rest=torch.zeros(len(pts), k1, 3),
+    )
+
+
+def with_added(source: GaussianModel, added: GaussianModel, region: torch.Tensor) -> Tuple[GaussianModel, torch.Tensor]:
+    """(edited, new_region): the source rows first (same order), the added ones after them
+    (generation 1); new_region marks `region` and every added row."""
+    n = len(added)
+    new_region = torch.cat([region, torch.ones(n, dtype=torch.bool)])
+    cat = lambda name: torch.cat([getattr(source, name).detach(), getattr(added, name).detach()])  # noqa: E731
+    edited = GaussianModel.from_tensors(
+        means=cat("means"), quats=cat("quats"), log_scales=cat("log_scales"), opacity_logits=cat("opacity_logits"),
+        sh_dc=cat("sh_dc"), sh_rest=cat("sh_rest"), mask=new_region,
+        generation=torch.cat([torch.zeros(len(source), dtype=torch.long), torch.ones(n, dtype=torch.long)]),
+    )
+    return edited, new_region
+
+
+_DEFAULT_COLOR = {"recolor": [0.36, 0.20, 0.11], "add": [0.80, 0.04, 0.09]}  # chocolate; cherry red
+_DEFAULT_PROMPT = {"recolor": "make the top chocolate brown", "add": "put a cherry on top"}
+
+
+@register("splat-truth")
+class SplatTruthDataModule(SceneDataModuleBase):
+    """A trained splat, cameras around it and a known edit of it in `scene.ground_truth`.
+
+    Loaders (from SceneDataModuleBase): train = an endless seeded stream of {"index": i} over the
+    training views, val/test = the held-out views. `scene.images` is None: edit systems render
+    the splat themselves."""
+
+    @dataclass
+    class Config:
+        ply: str = ""  # the trained scene (INRIA layout); read, never copied
+        edit: str = "recolor"  # recolor | add
+        prompt: str = ""  # the instruction the truth answers ("" = a default per edit)
+        seed: int = 0
+        up: List[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])  # the object's up axis (world)
+        front: Optional[List[float]] = None  # the direction the edit faces (None = up)
+        test_every: int = 8  # hold out every n-th camera (0: no hold-out)
+        # Cameras: from a camera source, or an orbit around the object when empty.
+        cameras: str = ""  # COLMAP sparse/0, transforms.json or cameras.json (any format load_cameras reads)
+        downscale: float = 1.0  # loaded cameras: 4 = images and intrinsics 4x smaller
+        max_cameras: int = 0  # loaded cameras: 0 = all; else an evenly spread subset
+        n_cameras: int = 40  # orbit
+        elevations: List[float] = field(default_factory=lambda: [20.0, 50.0])  # orbit rings, degrees above the up-plane
+        azimuth_span: float = 360.0  # orbit, degrees (360: all around)
+        radius: float = 2.6  # orbit distance, in object radii
+        width: int = 96  # orbit image size
+        height: int = 96
+        fov: float = 45.0  # orbit, degrees
+        # The edit (positions and sizes in object radii from the object centre).
+        color: Optional[List[float]] = None  # new colour (recolor) / the new object's colour (add); None = default
+        select: str = "top"  # recolor: top | ball
+        top_fraction: float = 0.5  # recolor top: upper fraction of the object's height
+        ball_radius: float = 0.35  # recolor ball
+        anchor: List[float] = field(default_factory=lambda: [0.62, 0.0, 0.0])  # ball centre / where the add sits
+        add_radius: float = 0.12  # add: the sphere's radius
+        add_count: int = 400  # add: Gaussians on the sphere
+        add_sink: float = 0.25  # add: fraction of its radius the sphere sinks into the surface
+        region_radius: float = 2.0  # add: region = splat Gaussians within this many sphere radii of it
+
+    def __init__(self, cfg=None) -> None:
+        super().__init__()
+        self.cfg = parse_structured(self.Config, cfg, where="data")
+        c = self.cfg
+        if not c.ply:
+            raise ConfigError("data.ply is not set: give the trained splat (data.ply=path/to/point_cloud.ply)")
+        if not os.path.isfile(c.ply):
+            raise ConfigError(f"data.ply does not exist: {c.ply}")
+        if c.edit not in EDIT_NAMES:
+            raise ConfigError(f"data.edit: unknown splat edit '{c.edit}'; known: {', '.join(EDIT_NAMES)}")
+        if c.select not in SELECT_RULES:
+            raise ConfigError(f"data.select: unknown rule '{c.select}'; known: {', '.join(SELECT_RULES)}")
+        if c.cameras and not os.path.exists(c.cameras):
+            raise ConfigError(f"data.cameras does not exist: {c.cameras}")
+        if c.downscale <= 0:
+            raise ConfigError(f"data.downscale must be > 0, got {c.downscale}")
+        self.scene: Optional[SceneData] = None
+
+    def cameras(self, center: torch.Tensor, radius: float, up: torch.Tensor) -> List[Camera]:
+        c = self.cfg
+        if not c.cameras:
+            return orbit_cameras(center, c.radius * radius, up, c.n_cameras, c.elevations, c.azimuth_span,
+                                 c.width, c.height, c.fov)
+        cams = load_cameras(c.cameras)
+        if c.max_cameras and len(cams) > c.max_cameras:
+            step = len(cams) / c.max_cameras
+            cams = [cams[int(i * step)] for i in range(c.max_cameras)]
+        return [cam.scaled(1.0 / c.downscale) for cam in cams] if c.downscale != 1.0 else cams
+
+    def ground_truth(self, source: GaussianModel, center: torch.Tensor, radius: float, up: torch.Tensor) -> GroundTruth:
+        c = self.cfg
+        color = list(c.color) if c.color is not None else _DEFAULT_COLOR[c.edit]
+        if len(color) != 3:
+            raise ConfigError(f"data.color must be an RGB triple in [0, 1], got {color}")
+        anchor = center + radius * torch.as_tensor(c.anchor, dtype=torch.float32)
+        if c.edit == "recolor":
+            if c.select == "top":
+                region, related = select_top(source, up, c.top_fraction)
+            else:
+                region, related = select_ball(source, anchor, c.ball_radius * radius)
+            if not bool(region.any()):
+                raise ConfigError(f"splat-truth recolor: the '{c.select}' rule selects no Gaussian; widen it")
+            edited, new_region = recolor(source, region, color), region.clone()
+        else:
+            r = c.add_radius * radius
+            top = surface_point(source, anchor, up, width=r)
+            sphere_center = top + (1 - c.add_sink) * r * up
+            added = sphere_gaussians(sphere_center, r, c.add_count, color, up, c.seed, source.sh_degree)
+            region, related = select_ball(source, sphere_center, c.region_radius * r)
+            edited, new_region = with_added(source, added, region)
+        front = _unit(c.front, "data.front") if c.front is not None else up
+        return GroundTruth(
+            source=source, edited=edited, region=region, new_region=new_region, related=related,
+            front=front, center=center, name=c.edit, prompt=c.prompt or _DEFAULT_PROMPT[c.edit],
+        )
+
+    def setup(self, stage: Optional[str] = None) -> None:
+        if self.scene is not None:
+            return
+        c = self.cfg
+        source = GaussianModel.from_ply(c.ply).requires_grad_(False)
+        up = _unit(c.up, "data.up")
+        center, radius = object_frame(source)
+        cameras = self.cameras(center, radius, up)
+        train, test = split_every(len(cameras), c.test_every)
+        self.scene = SceneData(cameras=cameras, images=None, train_indices=train, test_indices=test,
+                               ground_truth=self.ground_truth(source, center, radius, up),
+                               source=f"splat-truth:{c.edit}:{c.ply}")

@@ -1,0 +1,94 @@
+"""Region-aware metrics (gs_regional.metrics.region) on images with known answers."""
+import math
+
+import pytest
+import torch
+
+from gs_regional.metrics.region import (
+    footprint, mask_metrics, masked_psnr, masked_ssim, region_scores, silhouette_split, unedited_scores,
+)
+
+
+def _db(mse: float) -> float:
+    return 10 * math.log10(1 / mse)
+
+
+@pytest.fixture
+def views():
+    """Two 16x16 views: the edit's footprint is a 4x4 square in view 0 and absent from view 1;
+    the true edit turns it white. The result gets it off by 0.1 and the rest off by 0.01."""
+    source = torch.full((2, 16, 16, 3), 0.25)
+    inside = torch.zeros(2, 16, 16, dtype=torch.bool)
+    inside[0, 4:8, 4:8] = True
+    truth = source.clone()
+    truth[inside] = 1.0
+    result = source + 0.01
+    result[inside] = 0.9
+    return source, truth, result, inside
+
+
+def test_footprint_thresholds_the_rendered_weight():
+    w = torch.tensor([[0.0, 0.05, 0.1, 0.11, 1.0]])
+    assert footprint(w, 0.1).tolist() == [[False, False, False, True, True]]
+
+
+def test_masked_scores_pool_pixels_and_say_none_when_empty(views):
+    source, truth, result, inside = views
+    # MSE 0.01 inside (0.9 vs 1.0), pooled over the 16 pixels of view 0 and none of view 1
+    assert masked_psnr(result, truth, inside) == pytest.approx(_db(0.01), abs=1e-3)
+    assert masked_psnr(result, truth, ~inside) == pytest.approx(_db(1e-4), abs=1e-2)
+    empty = torch.zeros_like(inside)
+    assert masked_psnr(result, truth, empty) is None and masked_ssim(result, truth, empty) is None
+    assert masked_ssim(truth, truth, inside) == pytest.approx(1.0, abs=1e-6)
+    with pytest.raises(ValueError, match="mask"):
+        masked_psnr(result, truth, inside.float())
+    with pytest.raises(ValueError, match="shape"):
+        masked_psnr(result, truth[:1], inside)
+
+
+def test_region_scores_against_the_true_edit_and_doing_nothing(views):
+    source, truth, result, inside = views
+    s = region_scores(result, source, truth, inside)
+    assert s["psnr_region_vs_true_edit"] == pytest.approx(_db(0.01), abs=1e-3)
+    assert s["psnr_region_source_vs_true_edit"] == pytest.approx(_db(0.75**2), abs=1e-3)
+    assert s["psnr_outside_vs_true_edit"] == pytest.approx(_db(1e-4), abs=1e-2)
+    assert s["psnr_outside_source_vs_true_edit"] >= 100  # identical pixels: psnr's 1e-12 floor
+    assert s["ssim_outside_source_vs_true_edit"] < 1.0  # the window reaches across the footprint's border
+    assert 0 < s["ssim_region_source_vs_true_edit"] < s["ssim_region_vs_true_edit"] <= 1
+    # an edit whose footprint is empty on every view: no in-region score, the rest still scored
+    none = region_scores(source + 0.01, source, source, torch.zeros_like(inside))
+    assert none["psnr_region_vs_true_edit"] is None and none["ssim_region_source_vs_true_edit"] is None
+    assert none["psnr_outside_vs_true_edit"] == pytest.approx(_db(1e-4), abs=1e-2)
+
+
+def test_unedited_scores_split_silhouette_from_background():
+    """A halo: the result differs from the source on the object's edge, not on the black
+    background; the whole-image PSNR hides it, the silhouette PSNR does not."""
+    source = torch.zeros(1, 20, 20, 3)
+    alpha = torch.zeros(1, 20, 20)
+    alpha[0, 5:15, 5:15] = 1.0  # the object
+    source[alpha > 0] = 0.5
+    unedited = torch.ones(1, 20, 20, dtype=torch.bool)
+    unedited[0, 8:12, 8:12] = False  # the edit's footprint
+    result = source.clone()
+    result[0, 5, 5:15] += 0.2  # a halo row along the object's top edge
+    parts = silhouette_split(unedited, alpha)
+    assert int(parts["silhouette"].sum()) == 100 - 16 and int(parts["background"].sum()) == 400 - 100
+    assert not bool((parts["silhouette"] & parts["background"]).any())
+    s = unedited_scores(result, source, unedited, alpha)
+    assert s["psnr_unedited_silhouette"] == pytest.approx(_db(0.04 * 10 / 84), abs=1e-3)
+    assert s["psnr_unedited_background"] >= 100
+    assert s["psnr_unedited_silhouette"] < masked_psnr(result, source, unedited) - 5
+    # nothing opaque: no silhouette score
+    assert unedited_scores(result, source, unedited, torch.zeros_like(alpha))["psnr_unedited_silhouette"] is None
+
+
+def test_mask_metrics_known_and_empty():
+    m = mask_metrics(torch.tensor([True, True, False, False]), torch.tensor([True, False, True, False]))
+    assert m == {"mask_iou": pytest.approx(1 / 3), "mask_precision": 0.5, "mask_recall": 0.5}
+    empty, some = torch.zeros(3, dtype=torch.bool), torch.tensor([True, False, False])
+    assert mask_metrics(empty, some) == {"mask_iou": 0.0, "mask_precision": None, "mask_recall": 0.0}
+    assert mask_metrics(some, empty) == {"mask_iou": 0.0, "mask_precision": 0.0, "mask_recall": None}
+    assert mask_metrics(empty, empty) == {"mask_iou": None, "mask_precision": None, "mask_recall": None}
+    with pytest.raises(ValueError, match="shape"):
+        mask_metrics(some, torch.zeros(4, dtype=torch.bool))
