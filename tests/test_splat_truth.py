@@ -18,7 +18,7 @@ from gs_regional.data.loaders import save_cameras_json
 from gs_regional.edit.localize import render_selection
 from gs_regional.launcher import main
 from gs_regional.registry import find
-from gs_regional.renderers.sh import sh_to_rgb
+from gs_regional.utils.sh import sh_to_rgb
 from gs_regional.sim.scene import make_scene
 from gs_regional.sim.splat_truth import SplatTruthDataModule, object_frame, orbit_cameras
 from gs_regional.sim.truth import TruthRenderer

@@ -37,9 +37,9 @@ from gs_regional.data.loaders import load_cameras
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import register
-from gs_regional.renderers.sh import rgb_to_sh, sh_to_rgb
 from gs_regional.sim.scene import _cov_to_gaussian, _Ellipsoid, _sample_ellipsoid, look_at
 from gs_regional.sim.truth import GroundTruth
+from gs_regional.utils.sh import rgb_to_sh, sh_to_rgb
 
 EDIT_NAMES = ("recolor", "add")
 SELECT_RULES = ("top", "ball")
