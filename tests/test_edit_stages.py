@@ -5,8 +5,9 @@ import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, unproject
-from gs_regional.edit.localize import expand_selection, mask_metrics
+from gs_regional.edit.localize import expand_selection
 from gs_regional.edit.views import camera_path, nearest_cameras, order_by_azimuth, spread_subset
+from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.sh import sh_to_rgb
 
 

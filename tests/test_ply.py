@@ -281,3 +281,24 @@ def test_read_arrays_do_not_alias_the_file(tmp_path):
         f.write(data)
     for f, v in before.items():
         assert np.array_equal(getattr(g, f), v), f
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_ply_bytes_with_rows_is_the_size_write_ply_gives(tmp_path, degree):
+    """The size of a PLY with another number of rows, predicted from a written one's header
+    (extras of other types included), equals the size of actually writing it."""
+    cols = _scene_columns(1000, degree)
+    cols["label"] = np.arange(1000, dtype=np.int16)
+    _write_with_plyfile(tmp_path / "full.ply", cols)
+    full = read_ply(tmp_path / "full.ply")
+    write_ply(tmp_path / "rewritten.ply", full)
+    for rows in (7, 0):
+        part = {f: getattr(full, f)[:rows] for f in ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")}
+        normals = None if full.normals is None else full.normals[:rows]
+        extras = {k: v[:rows] for k, v in full.extras.items()}
+        write_ply(tmp_path / "part.ply", plymod.PlyGaussians(**part, normals=normals, extras=extras))
+        assert plymod.ply_bytes_with_rows(tmp_path / "part.ply", 1000) == os.path.getsize(tmp_path / "rewritten.ply")
+        assert plymod.ply_bytes_with_rows(tmp_path / "rewritten.ply", rows) == os.path.getsize(tmp_path / "part.ply")
+    _write_with_plyfile(tmp_path / "text.ply", cols, text=True)
+    with pytest.raises(PlyError, match="binary"):
+        plymod.ply_bytes_with_rows(tmp_path / "text.ply", 5)

@@ -13,9 +13,10 @@ from plyfile import PlyData
 
 from trial_helpers import metrics_of, ply_arrays, trial_of
 from gs_regional.sim.scene import make_cameras, make_edit
-from gs_regional.edit.localize import localize_gaussians, mask_metrics
+from gs_regional.edit.localize import localize_gaussians
 from gs_regional.edit.views import spread_subset
 from gs_regional.launch import main
+from gs_regional.metrics.region import mask_metrics
 from gs_regional.registry import find
 from gs_regional.systems.regional_edit import LocalizeConfig
 
@@ -101,6 +102,33 @@ def test_regional_edit_outputs_and_fidelity_against_in2n(runs):
     print(f"unedited-region PSNR: regional-edit {m['psnr_unedited']:.2f} dB, in2n {baseline['psnr_unedited']:.2f} dB")
     assert m["psnr_unedited"] >= 50.0
     assert baseline["psnr_unedited"] < 35.0
+
+
+def test_metrics_json_has_the_region_aware_scores(runs, tmp_path):
+    """Issue 11's keys in metrics.json of both methods: scores inside and outside the true
+    edit's footprint with their do-nothing baselines, the unedited pixels split into silhouette
+    and background, Gaussians added/pruned against the truth's, file sizes, warnings."""
+    source = make_edit("add").source
+    source.save_ply(str(tmp_path / "source.ply"))
+    for trial in (get_run(runs, "regional"), get_run(runs, "in2n", "configs/in2n.yaml")):
+        m = metrics_of(trial)
+        assert m["warnings"] == []
+        assert m["gaussians_before"] + m["gaussians_added"] - m["gaussians_pruned"] == m["gaussians_after"]
+        assert m["true_gaussians_added"] == 859  # the moustache
+        assert m["ply_bytes"] == os.path.getsize(Path(trial) / "save" / "edited.ply")
+        assert m["source_ply_bytes"] == os.path.getsize(tmp_path / "source.ply")
+        assert 0 < m["footprint_fraction"] < 0.2
+        # doing nothing is far off inside the footprint and (nearly) right outside it
+        assert m["psnr_region_source_vs_true_edit"] < m["psnr_source_vs_true_edit"] < m["psnr_outside_source_vs_true_edit"]
+        assert m["psnr_outside_source_vs_true_edit"] > 45
+        for key in ("psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "psnr_unedited_silhouette"):
+            assert 10 < m[key] < 80, key
+        for key in ("ssim_region_vs_true_edit", "ssim_region_source_vs_true_edit", "ssim_outside_vs_true_edit",
+                    "ssim_unedited_silhouette"):
+            assert 0 < m[key] <= 1, key
+        # the backdrop and the ground fill every view of the synthetic scene: no background pixels
+        assert m["psnr_unedited_background"] is None and m["ssim_unedited_background"] is None
+    assert metrics_of(get_run(runs, "in2n", "configs/in2n.yaml"))["gaussians_added"] == 0
 
 
 def test_depth_initialization_improves_the_add_edit(tmp_path):
@@ -217,6 +245,7 @@ def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
     assert "warning: localize: no Gaussian was selected" in capsys.readouterr().err
     m = metrics_of(trial)
     assert m["stopped"] == "empty selection" and m["count_selected"] == 0
+    assert m["mask_precision"] is None and m["mask_iou"] == 0.0  # nothing selected: precision is undefined
     edited = ply_arrays(Path(trial) / "save" / "edited.ply")
     source = make_edit("add").source
     np.testing.assert_array_equal(edited["x"], source.means[:, 0].detach().numpy())

@@ -221,8 +221,8 @@ def test_donut_regional_edit_end_to_end(tmp_path):
     t0 = time.perf_counter()
     argv = ["--config", str(ROOT / "configs/donut_add.yaml"), "--train", f"exp_root_dir={tmp_path}", "name=donut",
             f"data.ply={ply}", "data.n_cameras=12", "data.width=48", "data.height=48",
-            # one lift without view reweighting: each neighbour-pooling pass over 45k Gaussians costs ~15 s here
-            "system.localization.max_views=6", "system.localization.reweight_iters=0",
+            # no neighbour pooling: its all-pairs distances over 45k Gaussians cost ~15 s per pass here
+            "system.localization.max_views=6", "system.localization.knn=1",
             "system.refine.cycles=2", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
             "system.refine.densify_every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2", "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false"]
     assert main(argv) == 0
@@ -232,5 +232,10 @@ def test_donut_regional_edit_end_to_end(tmp_path):
     assert m["gaussians_before"] == 45624 and m["gaussians_after"] >= 45624
     assert m["mask_iou"] is not None and 0 < m["mask_iou"] <= 1
     assert m["psnr_unedited"] > 30 and 15 < m["psnr_vs_true_edit"] < 60
+    assert m["true_gaussians_added"] == 400 and m["warnings"] == []
+    assert m["gaussians_before"] + m["gaussians_added"] - m["gaussians_pruned"] == m["gaussians_after"]
+    assert m["psnr_region_source_vs_true_edit"] < m["psnr_source_vs_true_edit"]
+    # the donut floats on black: both parts of the unedited pixels are scored
+    assert m["psnr_unedited_silhouette"] > 20 and m["psnr_unedited_background"] > 20
     assert os.path.getsize(os.path.join(trial, "save", "edited.ply")) > 0
     print(f"donut add, tiny budget: {seconds:.1f} s, metrics {m}")

@@ -7,7 +7,6 @@ import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
-from gs_regional.metrics.region import mask_metrics  # noqa: F401  (re-exported: callers import it from here)
 
 
 def mask_votes(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> tuple:

@@ -289,3 +289,36 @@ def write_ply(path, g: PlyGaussians) -> None:
     element = PlyElement.describe(rows, "vertex")
     with atomic_write(path) as tmp:
         PlyData([element], text=False, byte_order="<").write(tmp)
+
+
+_PLY_TYPE_BYTES = {
+    "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+    "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
+}
+
+
+def ply_bytes_with_rows(path, rows: int) -> int:
+    """The size in bytes of the binary PLY at `path` (one `vertex` element of scalar properties,
+    as `write_ply` writes it) if it held `rows` Gaussians instead of its own: exact, without
+    writing it (e.g. the source scene's size in the layout of an edited scene's file)."""
+    path = os.fspath(path)
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    marker = b"end_header\n"
+    if not head.startswith(b"ply") or marker not in head:
+        raise PlyError(f"{path}: not a PLY file with a header under 64 KiB")
+    header = head[: head.index(marker) + len(marker)].decode("ascii")
+    element, count, row_bytes = None, None, 0
+    for line in header.splitlines():
+        words = line.split()
+        if words[:1] == ["element"]:
+            if element is not None:
+                raise PlyError(f"{path}: more than one element; expected only 'vertex'")
+            element, count = words[1], words[2]
+        elif words[:1] == ["property"] and element == "vertex":
+            if words[1] not in _PLY_TYPE_BYTES:
+                raise PlyError(f"{path}: property '{' '.join(words[1:])}' is not a scalar PLY type")
+            row_bytes += _PLY_TYPE_BYTES[words[1]]
+    if element != "vertex" or "format binary" not in header:
+        raise PlyError(f"{path}: expected one binary 'vertex' element")
+    return len(header) - len(count) + len(str(int(rows))) + int(rows) * row_bytes

@@ -13,8 +13,10 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
+from gs_regional.geometry.ply import ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
+from gs_regional.metrics.region import footprint, region_scores, unedited_scores
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
@@ -32,6 +34,11 @@ class EvalConfig:
     clip_model: Optional[str] = None  # e.g. openai/clip-vit-large-patch14 or a local folder
     source_caption: str = "a photo"  # for the CLIP direction similarity
     edit_caption: str = ""  # defaults to the prompt
+    # Region-aware metrics (gs_regional.metrics.region): the true edit's footprint is where the
+    # rendered weight of its region (and of the Gaussians it adds) exceeds this; the object's
+    # silhouette is where the source renders more opaque than `opaque_alpha`.
+    footprint_threshold: float = 0.1
+    opaque_alpha: float = 0.5
 
 
 class EditSystemBase(GaussianSystem):
@@ -192,6 +199,36 @@ class EditSystemBase(GaussianSystem):
         changed = ((truth - src).abs().amax(-1) > 2.0 / 255) | (region > 0.01)
         return ~dilate(changed, 2)
 
+    def true_footprint(self, index: int) -> torch.Tensor:
+        """(H, W) bool: the pixels the true edit is about at view `index`: where the true region
+        renders in the source scene or the edited scene's region (with what the edit adds)
+        renders in the true edited scene."""
+        gt = self.scene.ground_truth
+        cam = self.scene.cameras[index].to(self.device)
+        weight = torch.maximum(
+            render_selection(gt.source.to(self.device), self.renderer, cam, gt.region.to(self.device)),
+            render_selection(gt.edited.to(self.device), self.renderer, cam, gt.new_region.to(self.device)),
+        )
+        return footprint(weight, self.cfg.eval.footprint_threshold)
+
+    def size_metrics(self) -> Dict[str, object]:
+        """Gaussians added and pruned by this run (and by the true edit, if known), and the bytes
+        of save/edited.ply against the source scene written in the same layout."""
+        added = self.counts.get("added_init", 0) + self.counts.get("densified", 0)
+        pruned = self.counts.get("pruned", 0)
+        after = self.geometry.num_gaussians
+        if self.n_source + added - pruned != after:
+            self.warn(f"Gaussian counts do not add up: {self.n_source} before + {added} added - {pruned} pruned "
+                      f"!= {after} after")
+        out: Dict[str, object] = {"gaussians_added": added, "gaussians_pruned": pruned}
+        gt = self.scene.ground_truth
+        if gt is not None:
+            out["true_gaussians_added"] = len(gt.edited) - len(gt.source)
+        path = self.save_dir / "edited.ply"
+        out["ply_bytes"] = path.stat().st_size
+        out["source_ply_bytes"] = ply_bytes_with_rows(path, self.n_source)
+        return out
+
     def true_edited_render(self, index: int) -> torch.Tensor:
         cache = self.__dict__.setdefault("_truth_cache", {})
         if index not in cache:
@@ -234,12 +271,18 @@ class EditSystemBase(GaussianSystem):
             m = torch.stack([regions[i] for i in views])
             metrics["psnr_unedited"] = psnr(a, s, m)
             metrics["ssim_unedited"] = ssim(a, s, m)
+            alpha = torch.stack([self.render_view(i, self.source_model)["alpha"] for i in views])
+            metrics.update(unedited_scores(a, s, m, alpha, self.cfg.eval.opaque_alpha))
         if scene.ground_truth is not None:
             truth = torch.stack([self.true_edited_render(i) for i in views])
             metrics["psnr_vs_true_edit"] = psnr(torch.stack([after[i] for i in views]), truth)
             metrics["ssim_vs_true_edit"] = ssim(torch.stack([after[i] for i in views]), truth)
             # What leaving the scene unedited would score, for scale.
             metrics["psnr_source_vs_true_edit"] = psnr(torch.stack([self.source_renders[i] for i in views]), truth)
+            inside = torch.stack([self.true_footprint(i) for i in views])
+            metrics["footprint_fraction"] = float(inside.float().mean())
+            metrics.update(region_scores(torch.stack([after[i] for i in views]),
+                                         torch.stack([self.source_renders[i] for i in views]), truth, inside))
         if self.cfg.eval.clip_model:
             from gs_regional.metrics.clip import ClipMetrics
 
@@ -250,6 +293,7 @@ class EditSystemBase(GaussianSystem):
                 src, edi, self.cfg.eval.source_caption, self.cfg.eval.edit_caption or self.cfg.prompt
             )
             metrics["clip_image_similarity"] = clip.image_similarity(src, edi)
+        metrics.update(self.size_metrics())
         metrics.update(extra_metrics or {})
 
         path_views = order_by_azimuth(scene.cameras, scene.train_indices or scene.test_indices)

@@ -11,10 +11,11 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
-from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_metrics, render_selection
+from gs_regional.edit.localize import expand_selection, localize_gaussians, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
+from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.image import dilate
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
