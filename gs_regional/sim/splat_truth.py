@@ -224,7 +224,7 @@ class SplatTruthDataModule(SceneDataModuleBase):
         downscale: float = 1.0  # loaded cameras: 4 = images and intrinsics 4x smaller
         max_cameras: int = 0  # loaded cameras: 0 = all; else an evenly spread subset
         n_cameras: int = 40  # orbit
-        elevations: List[float] = field(default_factory=lambda: [20.0, 50.0])  # orbit rings, degrees above the up-plane
+        elevations: List[float] = field(default_factory=lambda: [10.0, 30.0])  # orbit rings, degrees above the up-plane
         azimuth_span: float = 360.0  # orbit, degrees (360: all around)
         radius: float = 2.6  # orbit distance, in object radii
         width: int = 96  # orbit image size
