@@ -246,6 +246,7 @@ def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
     m = metrics_of(trial)
     assert m["stopped"] == "empty selection" and m["count_selected"] == 0
     assert m["mask_precision"] is None and m["mask_iou"] == 0.0  # nothing selected: precision is undefined
+    assert len(m["warnings"]) == 1 and m["warnings"][0].startswith("localize: no Gaussian was selected")
     edited = ply_arrays(Path(trial) / "save" / "edited.ply")
     source = make_edit("add").source
     np.testing.assert_array_equal(edited["x"], source.means[:, 0].detach().numpy())

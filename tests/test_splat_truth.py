@@ -16,7 +16,7 @@ from trial_helpers import metrics_of, trial_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json
 from gs_regional.edit.localize import render_selection
-from gs_regional.launcher import main
+from gs_regional.launch import main
 from gs_regional.registry import find
 from gs_regional.utils.sh import sh_to_rgb
 from gs_regional.sim.scene import make_scene
@@ -190,10 +190,14 @@ def test_donut_cherry_is_seen_from_the_front_and_the_simulators_use_it():
     assert len(gt.edited) == n + 400 and 0 < int(gt.region.sum()) < 0.1 * n
     renderer = TruthRenderer(gt)
     cams = scene.cameras
-    frontal = max(cams, key=lambda c: float((c.center - gt.center) @ gt.front / (c.center - gt.center).norm()))
+    # the ring nearest the front (the upper one) sees the cherry from every azimuth
+    cos_front = torch.stack([(c.center - gt.center) @ gt.front / (c.center - gt.center).norm() for c in cams])
+    upper = [c for c, cos in zip(cams, cos_front) if float(cos) > float(cos_front.max()) - 1e-3]
     new_rows = torch.arange(len(gt.edited)) >= n
-    cherry = render_selection(gt.edited, renderer.renderer, frontal, new_rows) > 0.9
-    assert int(cherry.sum()) >= 15  # visible: a disc of a few pixels' radius at 64²
+    footprints = [render_selection(gt.edited, renderer.renderer, c, new_rows) > 0.9 for c in upper]
+    assert len(upper) == 4 and min(int(f.sum()) for f in footprints) >= 15  # a disc of a few pixels' radius at 64²
+    k = max(range(len(upper)), key=lambda i: int(footprints[i].sum()))
+    frontal, cherry = upper[k], footprints[k]
     seen = renderer.views(frontal)["edit_rgb"][cherry]
     assert float((seen[:, 0] - seen[:, 1:].max(1).values).min()) > 0.3  # red
     # the simulated editor and depth take this truth unchanged
@@ -204,7 +208,10 @@ def test_donut_cherry_is_seen_from_the_front_and_the_simulators_use_it():
     src = views["src_rgb"][None]
     edited = editor.edit(src, src, gt.prompt, t_start=None, seed=0, cameras=[frontal])[0]
     # the cherry appears; elsewhere only the simulated re-generation's blur and tone drift
-    assert float((edited - views["edit_rgb"])[cherry].abs().mean()) < 0.15 < float((src[0] - views["edit_rgb"])[cherry].abs().mean())
+    # (the simulated editor shifts the edit by a per-view jitter of ~1.5 px: a small cherry's edge moves)
+    err_edited = float((edited - views["edit_rgb"])[cherry].abs().mean())
+    err_source = float((src[0] - views["edit_rgb"])[cherry].abs().mean())
+    assert err_edited < 0.5 * err_source
     assert float((edited - src[0])[~cherry].abs().mean()) < 0.05
     relevance = editor.relevance(src, gt.prompt, cameras=[frontal])[0]
     region = render_selection(gt.source, renderer.renderer, frontal, gt.region) > 0.5

@@ -298,7 +298,7 @@ class RegionalEdit(EditSystemBase):
         if self.phase == "localize":
             self.run_localize()
             if not bool(self.geometry.mask.any()):
-                log.warning(
+                self.warn(
                     "localize: no Gaussian was selected for the prompt; nothing to edit. Try a lower "
                     "system.localization.gamma or system.localization.mask_threshold. The source scene is "
                     "written out unchanged."
