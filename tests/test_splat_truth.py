@@ -231,7 +231,8 @@ def test_donut_regional_edit_end_to_end(tmp_path):
             # no neighbour pooling: its all-pairs distances over 45k Gaussians cost ~15 s per pass here
             "system.localization.max_views=6", "system.localization.knn=1",
             "system.refine.cycles=2", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
-            "system.refine.densify_every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2", "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false"]
+            "system.densify.every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2",
+            "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false"]
     assert main(argv) == 0
     seconds = time.perf_counter() - t0
     trial = trial_of(tmp_path, "donut")
