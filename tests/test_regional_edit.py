@@ -122,7 +122,7 @@ def test_metrics_json_has_the_region_aware_scores(runs, tmp_path):
         assert m["psnr_region_source_vs_true_edit"] < m["psnr_source_vs_true_edit"] < m["psnr_outside_source_vs_true_edit"]
         assert m["psnr_outside_source_vs_true_edit"] > 45
         for key in ("psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "psnr_unedited_silhouette"):
-            assert 10 < m[key] < 80, key
+            assert 10 < m[key] <= 120, key  # 120 dB: psnr's floor on the error (an untouched region)
         for key in ("ssim_region_vs_true_edit", "ssim_region_source_vs_true_edit", "ssim_outside_vs_true_edit",
                     "ssim_unedited_silhouette"):
             assert 0 < m[key] <= 1, key
