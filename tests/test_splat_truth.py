@@ -228,8 +228,7 @@ def test_donut_regional_edit_end_to_end(tmp_path):
     t0 = time.perf_counter()
     argv = ["--config", str(ROOT / "configs/donut_add.yaml"), "--train", f"exp_root_dir={tmp_path}", "name=donut",
             f"data.ply={ply}", "data.n_cameras=12", "data.width=48", "data.height=48",
-            # no neighbour pooling: its all-pairs distances over 45k Gaussians cost ~15 s per pass here
-            "system.localization.max_views=6", "system.localization.knn=1",
+            "system.localization.max_views=6",
             "system.refine.cycles=2", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
             "system.densify.every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2",
             "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false"]
