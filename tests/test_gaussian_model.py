@@ -9,7 +9,7 @@ import torch
 
 import gs_regional
 from gs_regional.geometry import rows
-from gs_regional.geometry.gaussian_model import PARAM_NAMES, ROW_STATE, GaussianModel, LearningRates, knn_sq_dists
+from gs_regional.geometry.gaussian_model import PARAM_NAMES, ROW_STATE, GaussianModel, LearningRates
 from gs_regional.geometry.strategy import DensifyStrategy, add_gradient_stats
 from gs_regional.utils.sh import SH_C0
 
@@ -68,17 +68,6 @@ def test_registered_and_constructed_from_config(tmp_path):
     assert torch.equal(loaded.sh_rest, m.sh_rest)
     assert loaded.source_path == str(tmp_path / "s.ply")
     assert len(cls()) == 0
-
-
-def test_knn_is_exact_with_bounded_chunks():
-    g = torch.Generator().manual_seed(1)
-    x = torch.cat([torch.randn(600, 3, generator=g) * torch.tensor([5.0, 1.0, 0.05]),
-                   torch.randn(200, 3, generator=g) * 0.01 + 30.0])  # dense far cluster
-    x[:3] = x[3]  # duplicates have distance 0
-    got = knn_sq_dists(x, k=3, max_pairs=2000)
-    ref = torch.cdist(x.double(), x.double()).fill_diagonal_(math.inf).pow(2).topk(3, largest=False).values
-    torch.testing.assert_close(got.double(), ref, rtol=1e-4, atol=1e-9)
-    assert knn_sq_dists(x[:2]).shape == (2, 1) and knn_sq_dists(x[:1]).shape == (1, 0)
 
 
 def test_from_points_follows_3dgs_init():

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from gs_regional.geometry.knn import knn_sq_dists
+from gs_regional.geometry.neighbors import knn
 from gs_regional.geometry.ply import PlyGaussians, read_ply, write_ply
 from gs_regional.registry import register
 from gs_regional.utils.base import BaseModule
@@ -367,7 +367,8 @@ class GaussianModel(BaseModule):
         if not 0.0 < opacity < 1.0:
             raise ValueError(f"from_points: opacity must be in (0, 1), got {opacity}")
         n = xyz.shape[0]
-        d2 = knn_sq_dists(xyz, k=3)
+        # Centred: distances to the 3 nearest points are then exact to float32 far from the origin too.
+        d2 = knn(xyz - xyz.mean(0), k=3)[0]
         if d2.shape[1] == 0:  # a single point has no neighbours
             mean_d2 = xyz.new_full((n,), 1e-4)
         else:
