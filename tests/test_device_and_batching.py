@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
-from trial_helpers import metrics_of, trial_of
+from trial_helpers import metrics_of, trial_of, write_scene_folder
 from gs_regional.config import ConfigError
 from gs_regional.guidance.instructpix2pix import InstructPix2Pix
 from gs_regional.launch import main
@@ -199,14 +199,7 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
     """configs/edit.yaml with the tiny IP2P: batch_size 1 vs 3 gives the same targets (up to the
     UNet's batch-size-dependent float rounding) and each view gets its own seed, the one an
     unbatched edit uses: seed + 1000 (cycle + 1) + view."""
-    from gs_regional.data.loaders import save_cameras_json
-
-    gt = make_edit("add")
-    cams, _ = make_cameras(n=8, width=40, height=40)
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    gt.source.save_ply(str(scene / "point_cloud.ply"))
-    save_cameras_json(cams, str(scene / "cameras.json"))
+    scene, _ = write_scene_folder(tmp_path, n_cameras=8, size=40)
     common = [
         f"data.source={scene}", "data.test_every=8", f"system.geometry.ply={scene / 'point_cloud.ply'}",
         "system.prompt=give him a mustache", "system.seed=3",
@@ -276,14 +269,7 @@ def test_gsplat_and_torch_rasterizer_agree_on_the_reconstructed_face(tmp_path, s
 @GSPLAT
 def test_edit_runs_with_auto_renderer_on_cuda(tmp_path, tiny_models, caplog):  # noqa: F811
     """configs/edit.yaml (renderer_type: auto) with --gpu 0 picks gsplat and runs end to end."""
-    from gs_regional.data.loaders import save_cameras_json
-
-    gt = make_edit("add")
-    cams, _ = make_cameras(n=8, width=64, height=64)
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    gt.source.save_ply(str(scene / "point_cloud.ply"))
-    save_cameras_json(cams, str(scene / "cameras.json"))
+    scene, _ = write_scene_folder(tmp_path, n_cameras=8, size=64)
     with caplog.at_level(logging.INFO, logger="gs_regional"):
         trial = launch(
             tmp_path / "out", "auto", "configs/edit.yaml", f"data.source={scene}", "data.test_every=4",

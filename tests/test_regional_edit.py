@@ -11,7 +11,7 @@ import pytest
 import torch
 from plyfile import PlyData
 
-from trial_helpers import metrics_of, ply_arrays, trial_of
+from trial_helpers import metrics_of, ply_arrays, trial_of, write_scene_folder
 from gs_regional.sim.scene import make_cameras, make_edit
 from gs_regional.edit.localize import localize_gaussians
 from gs_regional.edit.views import spread_subset
@@ -206,14 +206,7 @@ from tiny_models_fixture import tiny_models  # noqa: E402,F401
 def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):  # noqa: F811
     """configs/edit.yaml with the real IP2P and Depth Anything classes (tiny random weights) on a
     scene folder a user would bring: a splat PLY and the 3DGS trainer's cameras.json."""
-    from gs_regional.data.loaders import save_cameras_json
-
-    gt = make_edit("add")
-    cams, _ = make_cameras(n=8, width=48, height=48)
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    gt.source.save_ply(str(scene / "point_cloud.ply"))
-    save_cameras_json(cams, str(scene / "cameras.json"))
+    scene, _ = write_scene_folder(tmp_path, n_cameras=8, size=48)
     argv = [
         "--config", str(ROOT / "configs/edit.yaml"), "--train", f"exp_root_dir={tmp_path / 'out'}",
         f"data.source={scene}", "data.test_every=4", f"system.geometry.ply={scene / 'point_cloud.ply'}",
@@ -234,9 +227,9 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
     # partial edits of each cycle (4 steps at 1000/4 spacing: 3 steps <= 750, 2 steps <= 500).
     assert m["unet_evals"] == 2 * 4 + 3 * 4 + 3 * 3 * 2 + 3 * 2 * 3
     assert -1.0 <= m["clip_direction_similarity"] <= 1.0 and -1.0 <= m["clip_image_similarity"] <= 1.0
-    assert "psnr_unedited" in m and m["gaussians_before"] == gt.source.num_gaussians
+    assert "psnr_unedited" in m and m["gaussians_before"] == make_edit("add").source.num_gaussians
     # The input files were not touched.
-    assert PlyData.read(str(scene / "point_cloud.ply"))["vertex"].count == gt.source.num_gaussians
+    assert PlyData.read(str(scene / "point_cloud.ply"))["vertex"].count == make_edit("add").source.num_gaussians
 
 
 def test_empty_selection_ends_early_and_writes_the_source(tmp_path, capsys):
@@ -289,14 +282,7 @@ def test_simulator_on_a_scene_without_ground_truth_says_what_to_do(tmp_path, cap
     """The simulated editor on a real scene folder (no known edit) stops at its first call with the fix."""
     from omegaconf import OmegaConf
 
-    from gs_regional.data.loaders import save_cameras_json
-
-    gt = make_edit("add")
-    cams, _ = make_cameras(n=4, width=32, height=32)
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    gt.source.save_ply(str(scene / "point_cloud.ply"))
-    save_cameras_json(cams, str(scene / "cameras.json"))
+    scene, _ = write_scene_folder(tmp_path, n_cameras=4, size=32)
     cfg = OmegaConf.load(ROOT / "configs/demo.yaml")
     cfg.data_type, cfg.data = "scene-datamodule", {"source": str(scene), "load_images": False}
     cfg.system.geometry = {"ply": str(scene / "point_cloud.ply")}

@@ -23,3 +23,19 @@ def ply_arrays(path):
     """Every vertex property of a PLY as a numpy array."""
     v = PlyData.read(str(path))["vertex"].data
     return {name: np.asarray(v[name]) for name in v.dtype.names}
+
+
+def write_scene_folder(tmp, n_cameras, size):
+    """The synthetic figure written as a user's scene folder (point_cloud.ply + cameras.json, no
+    known edit): the input of configs/edit.yaml. Returns (folder, ply path)."""
+    from pathlib import Path
+
+    from gs_regional.data.loaders import save_cameras_json
+    from gs_regional.sim.scene import make_cameras, make_edit
+
+    scene = Path(tmp) / "scene"
+    scene.mkdir()
+    ply = scene / "point_cloud.ply"
+    make_edit("add").source.save_ply(str(ply))
+    save_cameras_json(make_cameras(n=n_cameras, width=size, height=size)[0], str(scene / "cameras.json"))
+    return scene, ply
