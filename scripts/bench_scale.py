@@ -54,7 +54,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 # Imported once here: the stages run in forked children that share them.
 from gs_regional.sim.scene import look_at  # noqa: E402
 from gs_regional.edit.localize import (  # noqa: E402
-    expand_selection, knn_pool, localize_gaussians, neighbourhoods, render_selection,
+    expand_selection, knn_pool, localize_gaussians, neighbourhoods, render_selection, splat_selection,
 )
 from gs_regional.geometry import rows  # noqa: E402
 from gs_regional.geometry.gaussian_model import GaussianModel  # noqa: E402
@@ -221,8 +221,8 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
                         reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
                     )
                     selected = expand_selection(means, lifted["selected"], 0.01 * SCENE_EXTENT)
-                    for c in cams:
-                        render_selection(model, renderer, c, selected)
+                    for view in lifted["views"]:  # the render-back, from the views' kept weights
+                        splat_selection(view, selected)
     elif stage in ("append", "densify_prune"):
         opt = torch.optim.Adam(model.optimizer_param_groups(spatial_scale=SCENE_EXTENT))
         for p in model.parameters():

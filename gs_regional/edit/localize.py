@@ -7,29 +7,20 @@ import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
+from gs_regional.renderers.base import PixelWeights
 
 
-def mask_votes(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> tuple:
+def view_weights(model, renderer, cameras: Sequence[Camera]) -> list:
+    """The compositing weights of every view (`Renderer.pixel_weights`): found once, then every
+    lift and render-back of a localization reuses them (the geometry does not change meanwhile)."""
+    return [renderer.pixel_weights(model, cam) for cam in cameras]
+
+
+def mask_votes(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor]) -> tuple:
     """Per-view votes (V, N) of every Gaussian: numerator Σ_x w_i(v,x)·M_v(x) and denominator
-    Σ_x w_i(v,x), where w_i is the Gaussian's alpha-compositing weight.
-
-    Rendering a per-Gaussian feature f gives Σ_i w_i f_i at each pixel, so the gradient of
-    Σ_x M(x)·render(f)(x) with respect to f_i is Σ_x w_i(x)·M(x). Two channels give the numerator
-    and the denominator in one backward pass.
-    """
-    n = model.num_gaussians
-    device = model.means.device
-    num = torch.zeros(len(cameras), n, device=device)
-    den = torch.zeros(len(cameras), n, device=device)
-    for v, (cam, m) in enumerate(zip(cameras, masks)):
-        feat = torch.ones(n, 2, device=device, requires_grad=True)
-        with torch.enable_grad():
-            out = renderer.render(model, cam, override_color=feat)["rgb"]
-            m = m.to(device).float()
-            loss = (out[..., 0] * m).sum() + out[..., 1].sum()
-            (grad,) = torch.autograd.grad(loss, feat)
-        num[v] = grad[:, 0]
-        den[v] = grad[:, 1]
+    Σ_x w_i(v,x), where w_i is the Gaussian's alpha-compositing weight."""
+    num = torch.stack([v.gather(m.float()) for v, m in zip(views, masks)])
+    den = torch.stack([v.gather(torch.ones(m.shape, device=m.device)) for v, m in zip(views, masks)])
     return num, den
 
 
@@ -42,15 +33,15 @@ def weighted_scores(num: torch.Tensor, den: torch.Tensor, view_weights: torch.Te
 
 def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor]) -> torch.Tensor:
     """The plain rendering-weight vote of §3.1 step 4: s_i = Σ_v Σ_x w_i M_v / Σ_v Σ_x w_i."""
-    num, den = mask_votes(model, renderer, cameras, masks)
+    num, den = mask_votes(view_weights(model, renderer, cameras), masks)
     return weighted_scores(num, den, torch.ones(len(cameras), device=num.device))
 
 
-def mask_agreement(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], selected: torch.Tensor) -> torch.Tensor:
+def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor], selected: torch.Tensor) -> torch.Tensor:
     """IoU, per view, of the 2D mask with the render of the 3D selection (V,)."""
     out = []
-    for cam, m in zip(cameras, masks):
-        r = render_selection(model, renderer, cam, selected) > 0.5
+    for view, m in zip(views, masks):
+        r = splat_selection(view, selected) > 0.5
         m = m.to(r.device) > 0.5
         out.append(float((r & m).sum()) / max(float((r | m).sum()), 1.0))
     return torch.tensor(out, device=selected.device)
@@ -81,9 +72,11 @@ def localize_gaussians(
       the lift is repeated `reweight_iters` times; views that disagree with the consensus fade.
     * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
       rarely seen Gaussians follow their neighbourhood.
-    Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,)}.
+    Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
+    `PixelWeights` of the cameras, to render selections back without new renders}.
     """
-    num, den = mask_votes(model, renderer, cameras, masks)
+    views = view_weights(model, renderer, cameras)
+    num, den = mask_votes(views, masks)
     # the neighbours do not change between reweighting passes: found once
     neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
     weights = torch.ones(len(cameras), device=num.device)
@@ -95,10 +88,10 @@ def localize_gaussians(
         scores = torch.where(s_den > 1e-8, s_num / s_den.clamp_min(1e-8), torch.zeros_like(s_num))
         selected = scores > threshold
         if it < reweight_iters and bool(selected.any()):
-            weights = mask_agreement(model, renderer, cameras, masks, selected) ** agreement_power
+            weights = mask_agreement(views, masks, selected) ** agreement_power
             if float(weights.sum()) <= 0:
                 break
-    return {"selected": selected, "scores": scores, "view_weights": weights}
+    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views}
 
 
 def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float) -> torch.Tensor:
@@ -116,3 +109,9 @@ def render_selection(model, renderer, camera: Camera, selected: torch.Tensor) ->
     pixel's colour that comes from selected Gaussians."""
     feat = selected.float()[:, None].to(model.means.device)
     return renderer.render(model, camera, override_color=feat)["rgb"][..., 0].clamp(0, 1)
+
+
+@torch.no_grad()
+def splat_selection(view: PixelWeights, selected: torch.Tensor) -> torch.Tensor:
+    """`render_selection` from a view's kept weights (no new render)."""
+    return view.splat(selected.float()[:, None])[..., 0].clamp(0, 1)

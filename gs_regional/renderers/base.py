@@ -73,3 +73,45 @@ class Renderer(Configurable):
 
     def default_background(self, device) -> torch.Tensor:
         return torch.tensor(self.cfg.background, dtype=torch.float32, device=device)
+
+    def pixel_weights(self, model, camera: Camera) -> "PixelWeights":
+        """The compositing weights of `model` seen from `camera`, as a linear map (see
+        `PixelWeights`). This generic version renders once per use; a renderer that can keep the
+        weights (the torch-rasterizer) overrides it so that repeated uses cost no new render."""
+        return RenderedPixelWeights(self, model, camera)
+
+
+class PixelWeights:
+    """w_i(x), the alpha-compositing weight of Gaussian i at pixel x, for fixed geometry.
+
+    `splat(feats)` (N, C) -> (H, W, C): sum_i w_i(x) f_i, a render of per-Gaussian features on a zero
+    background; `gather(image)` (H, W) or (H, W, C) -> (N,) or (N, C): sum_x w_i(x) image(x), its
+    adjoint. Localization lifts 2D masks with `gather` and renders selections back with `splat`.
+    """
+
+    def splat(self, feats: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def gather(self, image: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class RenderedPixelWeights(PixelWeights):
+    """Any renderer: `splat` renders with `override_color`; `gather` is the gradient of
+    sum_x image(x) * render(f)(x) with respect to f, which is exactly sum_x w_i(x) image(x)."""
+
+    def __init__(self, renderer: Renderer, model, camera: Camera) -> None:
+        self.renderer, self.model, self.camera = renderer, model, camera
+
+    @torch.no_grad()
+    def splat(self, feats: torch.Tensor) -> torch.Tensor:
+        return self.renderer.render(self.model, self.camera, override_color=feats)["rgb"]
+
+    def gather(self, image: torch.Tensor) -> torch.Tensor:
+        flat = image.dim() == 2
+        img = (image[..., None] if flat else image).to(self.model.means.device).float()
+        feat = torch.ones(self.model.num_gaussians, img.shape[-1], device=img.device, requires_grad=True)
+        with torch.enable_grad():
+            out = self.renderer.render(self.model, self.camera, override_color=feat)["rgb"]
+            (grad,) = torch.autograd.grad((out * img).sum(), feat)
+        return grad[:, 0] if flat else grad

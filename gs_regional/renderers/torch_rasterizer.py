@@ -36,7 +36,7 @@ from torch.autograd.function import once_differentiable
 
 from gs_regional.data.cameras import Camera
 from gs_regional.registry import register
-from gs_regional.renderers.base import Renderer
+from gs_regional.renderers.base import PixelWeights, Renderer
 from gs_regional.utils.rotations import quat_to_rotmat
 from gs_regional.utils.sh import sh_to_color
 
@@ -317,7 +317,7 @@ def _composite_chunk(g, key, ex, dy, conics, opacities, feats, cols, out, alpha_
     alpha = alpha * valid
     w = alpha * t
     fg = feats.index_select(0, g)
-    out.index_add_(0, key, (w[:, :, None] * fg[:, None, :]).reshape(key.numel(), -1))
+    out.index_add_(0, key, (w[:, :, None] * fg[:, None, :]).reshape(key.numel(), out.shape[1]))
     alpha_out.index_add_(0, key, w)
     log_t_final.index_add_(0, key, torch.where(valid, log1m, 0.0))
     entry = (g, key, ex, dy, alpha, t)
@@ -328,6 +328,61 @@ def _composite_chunk(g, key, ex, dy, conics, opacities, feats, cols, out, alpha_
         idx = live.nonzero().squeeze(1)
         entry = tuple(_take(x, idx) for x in entry)
     return entry
+
+
+def _composite_all(means2d, conics, opacities, feats, depths, layout: _Layout, out, alpha_out, log_t_final) -> list:
+    """Bin, sort and composite every entry into the buffers (in place); returns the kept entries
+    of every chunk (see `_composite_chunk`)."""
+    cols = torch.arange(layout.strip_width, dtype=feats.dtype, device=feats.device)
+    bins = _bin(means2d, conics, opacities, depths, layout)
+    kept = []
+    for band in bins.bands:
+        gauss, keys, exs, dys, chunks = _band_entries(bins, layout, band, feats.dtype)
+        for r0, r1 in chunks:
+            kept.append(_composite_chunk(
+                gauss[r0:r1], keys[r0:r1], exs[r0:r1], dys[r0:r1], conics, opacities, feats,
+                cols, out, alpha_out, log_t_final,
+            ))
+    return kept
+
+
+def _strips_to_image(buf: torch.Tensor, layout: _Layout) -> torch.Tensor:
+    """Tile-major strip buffer (strips, strip_width * C) -> image (H, W, C)."""
+    ts, ty, tx = layout.tile_size, layout.tiles_y, layout.tiles_x
+    img = buf.reshape(ty, tx, ts, ts, -1).permute(0, 2, 1, 3, 4).reshape(ty * ts, tx * ts, -1)
+    return img[: layout.height, : layout.width]
+
+
+def _image_to_strips(image: torch.Tensor, layout: _Layout) -> torch.Tensor:
+    """Image (H, W, C) -> tile-major strips (strips, strip_width, C), zero outside the image."""
+    ts, ty, tx = layout.tile_size, layout.tiles_y, layout.tiles_x
+    pad = image.new_zeros(ty * ts, tx * ts, image.shape[-1])
+    pad[: layout.height, : layout.width] = image
+    return pad.reshape(ty, ts, tx, ts, -1).permute(0, 2, 1, 3, 4).reshape(layout.num_strips, layout.strip_width, -1)
+
+
+class SparsePixelWeights(PixelWeights):
+    """The weights w = alpha T of every contributing (strip, Gaussian) entry of one view, kept from
+    a single forward pass: `splat` and `gather` are then sparse sums, no new render. Memory is
+    ~48 bytes per contributing entry (each covers `strip_width` pixels)."""
+
+    def __init__(self, gauss: torch.Tensor, key: torch.Tensor, weights: torch.Tensor, layout: _Layout, n: int) -> None:
+        self.gauss, self.key, self.weights, self.layout, self.n = gauss, key, weights, layout, n
+
+    def splat(self, feats: torch.Tensor) -> torch.Tensor:
+        f = feats.to(self.weights.dtype).index_select(0, self.gauss)
+        buf = self.weights.new_zeros(self.layout.num_strips, self.layout.strip_width * f.shape[1])
+        # The same entries in the same order as the forward pass: the same sums as a render.
+        buf.index_add_(0, self.key, (self.weights[:, :, None] * f[:, None, :]).reshape(self.key.numel(), -1))
+        return _strips_to_image(buf, self.layout)
+
+    def gather(self, image: torch.Tensor) -> torch.Tensor:
+        flat = image.dim() == 2
+        img = (image[..., None] if flat else image).to(self.weights)
+        px = _image_to_strips(img, self.layout).index_select(0, self.key)  # (E, strip_width, C)
+        out = self.weights.new_zeros(self.n, img.shape[-1])
+        out.index_add_(0, self.gauss, torch.einsum("ex,exc->ec", self.weights, px))
+        return out[:, 0] if flat else out
 
 
 class _Rasterize(torch.autograd.Function):
@@ -345,21 +400,10 @@ class _Rasterize(torch.autograd.Function):
         out = torch.zeros(n_strips, sw * channels, dtype=dtype, device=device)
         alpha_out = torch.zeros(n_strips, sw, dtype=dtype, device=device)
         log_t_final = torch.zeros(n_strips, sw, dtype=dtype, device=device)
-        cols = torch.arange(sw, dtype=dtype, device=device)
         conics, opacities, fd = conics.detach(), opacities.detach(), feats.detach()
-        bins = _bin(means2d.detach(), conics, opacities, depths.detach(), layout)
         # Kept for the backward pass, per chunk: the entries that contribute to some pixel, with
         # their alpha (0 where skipped or after the stop) and T.
-        kept = []
-        for band in bins.bands:
-            gauss, keys, exs, dys, chunks = _band_entries(bins, layout, band, dtype)
-            for r0, r1 in chunks:
-                entry = _composite_chunk(
-                    gauss[r0:r1], keys[r0:r1], exs[r0:r1], dys[r0:r1], conics, opacities, fd,
-                    cols, out, alpha_out, log_t_final,
-                )
-                kept.append(entry)
-        ctx.kept = kept
+        ctx.kept = _composite_all(means2d.detach(), conics, opacities, fd, depths.detach(), layout, out, alpha_out, log_t_final)
         ctx.save_for_backward(conics, opacities, fd, torch.exp(log_t_final))
         return out, alpha_out
 
@@ -431,13 +475,7 @@ def rasterize(
     """
     layout = _Layout(width, height, tile_size, strip_width, int(chunk_size), 8 * int(chunk_size))
     out, alpha = _Rasterize.apply(means2d, conics, opacities, feats, depths, layout)
-    ts, channels = tile_size, feats.shape[1]
-    # Tile-major buffers -> images.
-    ty, tx = layout.tiles_y, layout.tiles_x
-    out = out.view(ty, tx, ts, ts, channels).permute(0, 2, 1, 3, 4)
-    out = out.reshape(ty * ts, tx * ts, channels)[:height, :width]
-    alpha = alpha.view(ty, tx, ts, ts).permute(0, 2, 1, 3).reshape(ty * ts, tx * ts)[:height, :width]
-    return out, alpha
+    return _strips_to_image(out, layout), _strips_to_image(alpha, layout)[..., 0]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -465,6 +503,26 @@ class TorchRasterizer(Renderer):
         if self.cfg.chunk_size < 1:
             raise ValueError(f"renderer.chunk_size must be >= 1, got {self.cfg.chunk_size}")
 
+    def _project_visible(self, model, camera: Camera):
+        """Cull, then project the visible Gaussians differentiably (culled ones may divide by 0).
+        Returns (idx of the visible rows, their Projection, radii (N,), visible (N,))."""
+        means = model.means
+        device, dtype = means.device, means.dtype
+        width, height = int(camera.width), int(camera.height)
+        viewmat = camera.world_to_camera.to(device=device, dtype=dtype)
+        intr = (camera.fx, camera.fy, camera.cx, camera.cy, width, height, self.cfg.eps2d)
+        with torch.no_grad():
+            proj = project_gaussians(means, model.quats, torch.exp(model.log_scales), viewmat, *intr)
+            radii, visible = cull(proj, width, height, self.cfg.near_plane, self.cfg.far_plane)
+        idx = visible.nonzero().squeeze(1)
+        take = lambda x: x.index_select(0, idx)  # noqa: E731  (faster than x[idx] on CPU)
+        proj = project_gaussians(take(means), take(model.quats), torch.exp(take(model.log_scales)), viewmat, *intr)
+        return idx, proj, radii, visible
+
+    def _layout(self, camera: Camera) -> _Layout:
+        chunk = int(self.cfg.chunk_size)
+        return _Layout(int(camera.width), int(camera.height), self.cfg.tile_size, self.cfg.strip_width, chunk, 8 * chunk)
+
     def _render(
         self, model, camera: Camera, bg: Optional[torch.Tensor], override_color: Optional[torch.Tensor]
     ) -> Dict[str, torch.Tensor]:
@@ -472,25 +530,15 @@ class TorchRasterizer(Renderer):
         n = means.shape[0]
         device, dtype = means.device, means.dtype
         width, height = int(camera.width), int(camera.height)
-        viewmat = camera.world_to_camera.to(device=device, dtype=dtype)
-        intr = (camera.fx, camera.fy, camera.cx, camera.cy, width, height, self.cfg.eps2d)
         channels = 3 if override_color is None else override_color.shape[1]
-
-        with torch.no_grad():
-            proj = project_gaussians(means, model.quats, torch.exp(model.log_scales), viewmat, *intr)
-            radii, visible = cull(proj, width, height, self.cfg.near_plane, self.cfg.far_plane)
-        idx = visible.nonzero().squeeze(1)
-
-        # Differentiable projection of the visible Gaussians only (culled ones may divide by 0).
-        take = lambda x: x.index_select(0, idx)  # noqa: E731  (faster than x[idx] on CPU)
-        mv = take(means)
-        proj = project_gaussians(mv, take(model.quats), torch.exp(take(model.log_scales)), viewmat, *intr)
+        idx, proj, radii, visible = self._project_visible(model, camera)
+        take = lambda x: x.index_select(0, idx)  # noqa: E731
         opacities = torch.sigmoid(take(model.opacity_logits))
         if override_color is not None:
             colors = take(override_color).to(dtype)
         else:
             sh = torch.cat([take(model.sh_dc)[:, None, :], take(model.sh_rest)], dim=1)
-            colors = sh_to_color(model.sh_degree, sh, mv, camera.center.to(device=device, dtype=dtype))
+            colors = sh_to_color(model.sh_degree, sh, take(means), camera.center.to(device=device, dtype=dtype))
         feats = torch.cat([colors, proj.depths[:, None]], dim=1)  # depth rides along as a channel
 
         means2d = proj.means2d.new_zeros(n, 2).index_put((idx,), proj.means2d)
@@ -512,3 +560,28 @@ class TorchRasterizer(Renderer):
             "radii": radii,
             "visible": visible,
         }
+
+    @torch.no_grad()
+    def pixel_weights(self, model, camera: Camera) -> SparsePixelWeights:
+        """One forward pass that keeps w = alpha T of every contributing entry (see
+        `SparsePixelWeights`): later splats and gathers of this view need no render."""
+        camera = camera.to(model.means.device)
+        idx, proj, _, _ = self._project_visible(model, camera)
+        opacities = torch.sigmoid(model.opacity_logits.index_select(0, idx))
+        layout = self._layout(camera)
+        dtype, device = proj.means2d.dtype, proj.means2d.device
+        sw = layout.strip_width
+        alpha_out = torch.zeros(layout.num_strips, sw, dtype=dtype, device=device)
+        log_t_final = torch.zeros_like(alpha_out)
+        kept = _composite_all(
+            proj.means2d, proj.conics, opacities, proj.means2d.new_zeros(idx.numel(), 0), proj.depths, layout,
+            proj.means2d.new_zeros(layout.num_strips, 0), alpha_out, log_t_final,
+        )
+        gauss = torch.cat([k[0] for k in kept]) if kept else idx.new_zeros(0)
+        key = torch.cat([k[1] for k in kept]) if kept else idx.new_zeros(0)
+        weights = torch.cat([k[4] * k[5] for k in kept]) if kept else alpha_out.new_zeros(0, sw)
+        live = (weights > 0).any(1).nonzero().squeeze(1)
+        return SparsePixelWeights(
+            idx.index_select(0, gauss.index_select(0, live)), key.index_select(0, live),
+            weights.index_select(0, live), layout, model.num_gaussians,
+        )
