@@ -18,6 +18,7 @@ setup(
         "numpy>=1.24",
         "safetensors",
         "tqdm",
+        "matplotlib>=3.7",  # charts of scripts/pareto.py and scripts/stability.py (PNG, no display needed)
     ],
     extras_require={
         "gsplat": ["gsplat>=1.4"],

@@ -265,3 +265,24 @@ def test_simulated_depth_recovers_true_depth(cams):
     other = find("simulated-depth")({"seed": 4})
     other.attach_ground_truth(gt)
     assert not torch.allclose(disp, other.disparity(src, cameras=views))
+
+
+def test_simulated_depth_edit_bias_moves_only_the_new_geometry(cams):
+    """edit_scale_bias / edit_shift_bias change the disparity only where the image shows the edit's
+    new geometry, so a calibration outside the edit cannot see them (the stability sweep's depth bias)."""
+    gt = make_edit("add")
+    plain = find("simulated-depth")({"corruption": 0.0})
+    biased = find("simulated-depth")({"corruption": 0.0, "edit_scale_bias": 0.5, "edit_shift_bias": 0.1})
+    for d in (plain, biased):
+        d.attach_ground_truth(gt)
+    cam = cams["front"]
+    v = plain.truth_renderer.views(cam)
+    d0, d1 = (d.disparity(v["edit_rgb"][None], cameras=[cam])[0] for d in (plain, biased))
+    disp_src = plain.true_disparity(v["src_depth"], v["src_alpha"])
+    new_geometry = (plain.true_disparity(v["edit_depth"], v["edit_alpha"]) - disp_src).abs() > 1e-3 * disp_src.max()
+    changed = (d1 - d0).abs() > 1e-6
+    assert changed.sum() > 10 and not (changed & ~new_geometry).any()
+    assert (d1[changed] > d0[changed]).all()  # larger disparity: the new geometry comes nearer
+    # an image of the source shows no new geometry: untouched
+    src = v["src_rgb"][None]
+    assert torch.equal(plain.disparity(src, cameras=[cam]), biased.disparity(src, cameras=[cam]))

@@ -162,6 +162,9 @@ def test_edits_definitions(scene):
         if name == "global":
             assert region.all() and changed.float().mean() > 0.95
             assert gt.related is None
+        elif name == "empty":
+            assert not region.any() and not changed.any() and len(ed) == len(src)
+            assert gt.related is None
         else:
             assert 0 < region.sum() < 0.5 * len(region)
             assert torch.equal(region, labels == names.index("head"))

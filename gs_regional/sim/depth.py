@@ -13,7 +13,11 @@ corruption, like the relative disparity a real estimator (Depth Anything) return
     for the edited and the unedited image of one view (a real estimator shows two near-identical
     images alike);
   * corruption (0 = exact): Gaussian noise of `noise * corruption` x the image's disparity range
-    and a fraction `outliers * corruption` of pixels replaced by random values in that range.
+    and a fraction `outliers * corruption` of pixels replaced by random values in that range;
+  * a bias of the edit's new geometry (0 = none): where the image shows the edited scene at a depth
+    that differs from the source's, the disparity is scaled by 1 + `edit_scale_bias` and shifted by
+    `edit_shift_bias` x the mean disparity before the affine map, as a real estimator misjudges
+    how far a new object stands out. Calibration on the pixels outside the edit cannot see it.
 
 Images must come with their `cameras=`. The scenes are those of the ground truth handed over with
 `attach_ground_truth` (systems hand over `SceneData.ground_truth`, e.g. the synthetic scene's).
@@ -45,6 +49,8 @@ class SimulatedDepth(GroundTruthConsumer, DepthEstimator):
         corruption: float = 1.0  # overall strength of the corruption below (0: exact up to the affine map)
         noise: float = 0.01  # noise std as a fraction of the image's disparity range, at corruption 1
         outliers: float = 0.005  # fraction of pixels replaced by random values, at corruption 1
+        edit_scale_bias: float = 0.0  # relative scale error of the disparity of the edit's new geometry
+        edit_shift_bias: float = 0.0  # its shift error, as a fraction of the mean disparity
         alpha_threshold: float = 0.5  # below this rendered alpha a pixel is background (far)
         max_cached_views: int = 512
 
@@ -72,7 +78,12 @@ class SimulatedDepth(GroundTruthConsumer, DepthEstimator):
             tag = "edit" if bool(use_edit.any()) else "src"
             self.last_choice.append("edited" if tag == "edit" else "source")
             disp_src = self.true_disparity(v["src_depth"], v["src_alpha"])
-            disp = torch.where(use_edit, self.true_disparity(v["edit_depth"], v["edit_alpha"]), disp_src)
+            disp_edit = self.true_disparity(v["edit_depth"], v["edit_alpha"])
+            if c.edit_scale_bias != 0 or c.edit_shift_bias != 0:
+                new_geometry = (disp_edit - disp_src).abs() > 1e-3 * float(disp_src.abs().max()) + 1e-12
+                biased = disp_edit * (1 + c.edit_scale_bias) + c.edit_shift_bias * float(disp_src.mean())
+                disp_edit = torch.where(new_geometry, biased, disp_edit)
+            disp = torch.where(use_edit, disp_edit, disp_src)
 
             # the affine map depends on (seed, camera) only; the noise also on which scene it is
             gen = torch.Generator().manual_seed((c.seed * 1_000_003 + camera_seed(cam)) % (2**61 - 1))

@@ -23,8 +23,11 @@ Named ground-truth edits (`make_edit`):
            head's Gaussians (the part it is attached to, which is what an editor's mask selects);
            edited = source + the new Gaussians.
   global   a sepia colour transform of every Gaussian (background included); region = all.
+  empty    an instruction about something the scene does not show ("put a hat on the cat"):
+           region = none, edited = source; the right answer is to change nothing.
 Each is returned as a `GroundTruth` (gs_regional.sim.truth); its `related` part (what a real
-editor's relevance tends to light up too) is the body for `recolor` and `add`, none for `global`.
+editor's relevance tends to light up too) is the body for `recolor` and `add`, none for `global`
+and `empty`.
 
 `SyntheticDataModule` (registered as `synthetic-scene`) serves renders of the source scene at
 a front-biased ring of cameras, with the ground truth in `SceneData.ground_truth`.
@@ -61,7 +64,7 @@ CAMERA_FOV = 45.0  # degrees, vertical and horizontal (square pixels)
 
 PART_NAMES = ["ground", "backdrop", "body", "head", "nose", "eyes", "arms"]
 OBJECT_PARTS = ("body", "head", "nose", "eyes", "arms")
-EDIT_NAMES = ("recolor", "add", "global")
+EDIT_NAMES = ("recolor", "add", "global", "empty")
 
 _OBJECT_OPACITY = 0.97
 _BACKGROUND_OPACITY = 0.95
@@ -373,10 +376,11 @@ _PROMPTS = {
     "recolor": "make his head red",
     "add": "give him a mustache",
     "global": "make it look like an old sepia photograph",
+    "empty": "put a hat on the cat",
 }
 # A part next to the region that a real editor's relevance tends to light up too (the simulated
 # editor's `leakage`); None for global edits.
-_RELATED = {"recolor": "body", "add": "body", "global": None}
+_RELATED = {"recolor": "body", "add": "body", "global": None, "empty": None}
 
 
 def make_edit(name: str, seed: int = 0, n_object: int = 6000, n_background: int = 4000) -> GroundTruth:
@@ -403,6 +407,10 @@ def make_edit(name: str, seed: int = 0, n_object: int = 6000, n_background: int 
         generation = torch.cat([torch.zeros(len(a.means), dtype=torch.long), torch.ones(len(m.means), dtype=torch.long)])
         new_region = torch.cat([region, torch.ones(len(m.means), dtype=torch.bool)])
         edited = _to_model(both, generation, mask=new_region)
+    elif name == "empty":
+        region = torch.zeros(len(labels), dtype=torch.bool)
+        new_region = region.clone()
+        edited = _to_model(a, mask=new_region)
     else:  # global
         region = torch.ones(len(labels), dtype=torch.bool)
         new_region = region.clone()
@@ -442,7 +450,7 @@ class SyntheticDataModule(SceneDataModuleBase):
     @dataclass
     class Config:
         seed: int = 0  # scene, cameras and the data order
-        edit: str = "recolor"  # which ground-truth edit: recolor | add | global
+        edit: str = "recolor"  # which ground-truth edit: recolor | add | global | empty
         n_cameras: int = 40
         width: int = 96
         height: int = 96

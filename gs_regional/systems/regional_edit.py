@@ -11,7 +11,7 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
-from gs_regional.edit.localize import expand_selection, localize_gaussians, render_selection
+from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_agreement, render_selection
 from gs_regional.edit.views import nearest_cameras, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
@@ -37,6 +37,11 @@ class LocalizeConfig:
     agreement_power: float = 2.0  # view weight = IoU(2D mask, rendered 3D mask) ** power
     knn: int = 16  # pool votes over the k nearest Gaussians (point expansion)
     expand_radius: float = 0.0  # also select everything within this radius, as a fraction of the scene extent
+    # The views disagree about the region when, even in the better half of them (side views may
+    # miss it), the 2D masks overlap the rendered 3D mask by less than this (mean IoU): the
+    # instruction names nothing the editor finds consistently, and the run stops with the source
+    # written unchanged. 0 never stops.
+    min_view_agreement: float = 0.3
 
 
 @dataclass
@@ -143,6 +148,8 @@ class RegionalEdit(EditSystemBase):
             selected = lifted["selected"]
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
+            iou = mask_agreement(g, self.renderer, [c.to(self.device) for c in cams], masks, selected)
+            self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
         g.mask.copy_(selected)
@@ -297,16 +304,17 @@ class RegionalEdit(EditSystemBase):
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":
             self.run_localize()
+            agreement = self.localize_metrics.get("view_agreement")
             if not bool(self.geometry.mask.any()):
-                self.warn(
-                    "localize: no Gaussian was selected for the prompt; nothing to edit. Try a lower "
-                    "system.localization.gamma or system.localization.mask_threshold. The source scene is "
-                    "written out unchanged."
-                )
-                self.phase = "done"
-                self.trainer.should_stop = True
-                self.write_outputs({"stopped": "empty selection", **self.localize_metrics})
-                return None
+                return self.stop_unchanged(
+                    "empty selection", "localize: no Gaussian was selected for the prompt; nothing to edit. Try a lower "
+                    "system.localization.gamma or system.localization.mask_threshold.")
+            if agreement is not None and agreement < self.cfg.localization.min_view_agreement:
+                return self.stop_unchanged(
+                    "views disagree", f"localize: the views disagree about the region (its 2D masks overlap the "
+                    f"lifted 3D mask by IoU {agreement:.2f} in the better half of the views, below "
+                    f"system.localization.min_view_agreement={self.cfg.localization.min_view_agreement}); the "
+                    "instruction names nothing the editor finds consistently.")
         if self.phase == "initialize":
             self.run_initialize()
         if self.phase != "refine":
@@ -333,6 +341,15 @@ class RegionalEdit(EditSystemBase):
             self.counts["densified"] = self.counts.get("densified", 0) + rep["cloned"] + rep["split"]
             self.counts["pruned"] = self.counts.get("pruned", 0) + rep["pruned"]
         self.add_time("refine_train", time.perf_counter() - t0)
+        return None
+
+    def stop_unchanged(self, reason: str, message: str) -> None:
+        """The safe path when localization cannot be trusted: warn, write the source scene out
+        unchanged (with metrics.json `stopped`) and end the run."""
+        self.warn(message + " The source scene is written out unchanged.")
+        self.phase = "done"
+        self.trainer.should_stop = True
+        self.write_outputs({"stopped": reason, **self.localize_metrics})
         return None
 
     def on_train_end(self) -> None:
