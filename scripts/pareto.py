@@ -72,7 +72,8 @@ def chart(records: List[dict], edit: str, path: str) -> None:
         for col, (ckey, clabel) in enumerate(COST):
             ax = axes[row][col]
             for method, color in METHOD_COLORS.items():
-                pts = [(r[ckey], r[qkey]) for r in mine if r["method"] == method and r[qkey] is not None]
+                pts = [(r[ckey], r[qkey]) for r in mine
+                       if r["method"] == method and r[qkey] is not None and r[ckey] is not None]
                 if not pts:
                     continue
                 ax.scatter(*zip(*pts), color=color, label=method, zorder=3)
@@ -112,6 +113,9 @@ def main(argv=None) -> int:
     print("\n| edit | method | settings | edit s | UNet evals | in-region PSNR (doing nothing) | unedited PSNR | Gaussians added |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in records:
+        if r.get("error"):
+            print(f"| {r['edit']} | {r['method']} | {r['label']} | failed: {r['error']} | | | | |")
+            continue
         print(f"| {r['edit']} | {r['method']} | {r['label']} | {r['edit_seconds']:.1f} | {r['unet_evals']} | "
               f"{fmt(r['psnr_region_vs_true_edit'])} ({fmt(r['psnr_region_source_vs_true_edit'])}) | "
               f"{fmt(r['psnr_unedited'])} | {r['gaussians_added']} |")

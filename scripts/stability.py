@@ -120,7 +120,7 @@ def breaks(records: List[dict], quick: bool) -> Dict[str, Dict[str, str]]:
             verdict = "holds"
             for (label, _), r in zip(steps, s):
                 if r is not None and fails(r):
-                    verdict = f"{label}" + (" (stopped)" if r.get("stopped") else "")
+                    verdict = f"{label}" + (" (stopped)" if r.get("stopped") else " (error)" if r.get("error") else "")
                     break
             if kind not in USES[method]:
                 verdict = f"not affected ({'holds' if verdict == 'holds' else 'below at default'})"
@@ -181,6 +181,9 @@ def scenario_rows(records: List[dict]) -> List[str]:
     rows = []
     for r in records:
         if not r["mode"].endswith("instruction"):
+            continue
+        if r.get("error"):
+            rows.append(f"| {r['mode']} | {r['method']} | failed: {r['error']} | | |")
             continue
         if r["edit"] == "empty":  # the right answer is no change: the whole view is unedited region
             verdict = "stopped, source unchanged" if r.get("stopped") else "edited"

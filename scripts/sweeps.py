@@ -138,13 +138,20 @@ def record_of(r: Run, quick: bool, runs_dir: str) -> dict:
 
 def run_all(runs: Sequence[Run], quick: bool, out: str, json_name: str, header: dict) -> List[dict]:
     """Run every run in order, rewriting out/json_name after each (a long sweep shows progress and
-    keeps what finished). Returns the records."""
+    keeps what finished). A run that fails gets a record with `error` and no metrics. Returns the
+    records."""
     os.makedirs(out, exist_ok=True)
     runs_dir = os.path.join(out, "runs")
     records = []
     for i, r in enumerate(runs):
         print(f"[{i + 1}/{len(runs)}] {r.key} {' '.join(r.overrides)}", flush=True)
-        records.append(record_of(r, quick, runs_dir))
+        try:
+            records.append(record_of(r, quick, runs_dir))
+        except (SystemExit, Exception) as e:  # one failed run is reported, the sweep goes on
+            print(f"error: {r.key} failed: {e}", flush=True)
+            records.append({"key": r.key, "edit": r.edit, "method": r.method, "label": r.label, "config": r.config,
+                            "overrides": r.all_overrides(quick), **r.info, **{k: None for k in METRIC_KEYS},
+                            "error": str(e) or type(e).__name__})
         write_json(os.path.join(out, json_name), {**header, "records": records})
     return records
 
