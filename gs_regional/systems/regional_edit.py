@@ -148,7 +148,7 @@ class RegionalEdit(EditSystemBase):
             selected = lifted["selected"]
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
-            iou = mask_agreement(g, self.renderer, [c.to(self.device) for c in cams], masks, selected)
+            iou = mask_agreement(lifted["views"], masks, selected)
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
