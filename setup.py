@@ -23,6 +23,8 @@ setup(
     extras_require={
         "gsplat": ["gsplat>=1.4"],
         "lpips": ["lpips>=0.1.4"],
+        # `launch.py --view`: viser serves the web viewer (Gaussian splat scene node, GUI panel)
+        "viewer": ["viser>=1.1"],
         "test": ["pytest>=7"],
     },
 )

@@ -16,6 +16,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="launch.py",
         description="Run a gs_regional experiment: python launch.py --config X.yaml --train [key=value ...]",
+        epilog="View an edit run in the browser: python launch.py --view TRIAL_DIR [--port 8080] "
+               "(needs the 'viewer' extra; --view --help lists its options)",
     )
     p.add_argument("--config", required=True, help="YAML experiment config")
     mode = p.add_mutually_exclusive_group(required=True)
@@ -43,6 +45,10 @@ def main(argv: Optional[Sequence[str]] = None, custom_dir: Any = None) -> int:
     other errors propagate with their traceback.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    if any(a == "--view" or a.startswith("--view=") for a in argv):
+        from gs_regional.launch.view import main as view_main  # viser only when viewing
+
+        return view_main(argv, custom_dir)
     parser = build_parser()
     try:
         args, extra = parser.parse_known_args(argv)

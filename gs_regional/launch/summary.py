@@ -133,6 +133,8 @@ def format_summary(info: RunInfo) -> str:
     for label, path in find_outputs(info.trial):
         older = path.stat().st_mtime < info.started_at - 1.0  # 1 s: coarse file-system clocks
         rows.append((label, f"{path}{'  (from an earlier run)' if older else ''}"))
+    if (Path(info.trial) / "save" / "edited.ply").is_file():
+        rows.append(("viewer", f"python launch.py --view {info.trial}"))
     width = max(len(label) for label, _ in rows)
     lines = [f"{label:<{width}}  {text}" for label, text in rows]
     lines.append(f"results: {info.trial}")

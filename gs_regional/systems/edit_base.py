@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
+import numpy as np
 import torch
 
 from gs_regional.config import ConfigError
@@ -248,6 +249,10 @@ class EditSystemBase(GaussianSystem):
         self.set_stage("output")
         t0 = time.perf_counter()
         self.geometry.save_ply(str(self.save_dir / "edited.ply"))
+        # Which rows of edited.ply the edit selected or added (the viewer highlights them).
+        g = self.geometry
+        np.savez_compressed(self.save_dir / "edit_mask.npz", mask=g.mask.cpu().numpy(),
+                            generation=g.generation.cpu().numpy(), source_index=g.source_index.cpu().numpy())
         scene = self.scene
         views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]
         after = {i: self.render_view(i)["rgb"].clamp(0, 1) for i in views}
