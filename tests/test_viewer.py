@@ -206,6 +206,13 @@ def test_page_renders_the_splats_and_toggles_before_after(recolor_trial):
 
             page.get_by_text("Highlight edit mask").click()  # the mask is the head: tinted magenta
             highlighted = _next_frame(page, source)
+
+            # Fewer Gaussians on demand (for browsers without a GPU): the page says it subsampled.
+            shown = page.get_by_label("Gaussians shown")
+            shown.fill("1000")
+            shown.press("Enter")
+            page.get_by_text("shows a random 1,000 of its").first.wait_for(timeout=10_000)
+            assert all(s.shown == 1000 for s in viewer.splats.values())
             browser.close()
     finally:
         viewer.stop()

@@ -4,7 +4,7 @@ The page shows the edited scene (`save/edited.ply`) and the source scene it was 
 PLY of `system.geometry.ply` in the trial's `configs/parsed.yaml`, or the scene its data module
 rebuilds, e.g. the synthetic figure), with
 
-  - a before/after choice: edited, source, or both side by side;
+  - a before/after toggle between the edited and the source scene;
   - the edit mask highlighted on demand (`save/edit_mask.npz`, row-aligned with edited.ply; older
     trials: the rows of `ckpts/last.ckpt`);
   - the training cameras as frustums (held-out cameras in another colour);
@@ -41,7 +41,7 @@ DEFAULT_MAX_GAUSSIANS = 500_000  # per scene; a software-rendered browser still 
 EDIT_MASK_FILE = "edit_mask.npz"
 MASK_COLOUR = np.array([1.0, 0.0, 1.0], dtype=np.float32)  # magenta: absent from most scenes
 MASK_TINT = 0.65  # how much of a highlighted Gaussian's colour is the mask colour
-SCENES = ("edited", "source", "side by side")
+SCENES = ("edited", "source")
 FRUSTUM_SIZE = 0.04  # of the camera rig's radius: a rig of hundreds of cameras stays legible
 TRAIN_FRUSTUM_COLOUR = (40, 120, 255)
 TEST_FRUSTUM_COLOUR = (255, 150, 0)
@@ -225,14 +225,6 @@ def _look_at(camera: Camera, centers: np.ndarray) -> np.ndarray:
     return origin + forward * (float(np.median(depth)) if len(depth) else 1.0)
 
 
-def _side_offset(camera: Camera, centers: np.ndarray) -> np.ndarray:
-    """Where to put the source for 'side by side': to the left of the edit, one scene width away
-    as seen from `camera` (2-98% of the Gaussians, so that stray ones do not count)."""
-    right = camera.camera_to_world.numpy()[:3, 0]
-    lo, hi = np.percentile(centers @ right, [2, 98])
-    return -right * float(hi - lo) * 1.05
-
-
 def _metrics_markdown(trial: Trial) -> str:
     m = trial.metrics
     lines = [f"**Prompt:** {trial.prompt or '(none)'}", ""]
@@ -254,11 +246,21 @@ class Viewer:
 
     server: Any
     url: str
-    edited: Splats
-    source: Splats
+    splats: Dict[str, Splats]  # "edited", "source": what the page shows now
 
     def stop(self) -> None:
         self.server.stop()
+
+
+def _sampling_note(splats: Dict[str, Splats]) -> str:
+    lines = []
+    for name, s in splats.items():
+        if s.shown < s.total:
+            lines.append(f"**Subsampled:** the {name} scene shows a random {s.shown:,} of its {s.total:,} Gaussians")
+        else:
+            lines.append(f"The {name} scene: all {s.total:,} Gaussians")
+    lines.append("Slow to turn? Show fewer Gaussians (`--max-gaussians` sets the start).")
+    return "\n\n".join(lines)
 
 
 def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
@@ -267,8 +269,8 @@ def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     import viser
     import viser.transforms as vtf
 
-    edited = to_splats(trial.edited, trial.edited_mask, max_gaussians)
-    source = to_splats(trial.source, trial.source_mask, max_gaussians)
+    scenes = {"edited": (trial.edited, trial.edited_mask), "source": (trial.source, trial.source_mask)}
+    splats = {name: to_splats(g, mask, max_gaussians) for name, (g, mask) in scenes.items()}
     server = viser.ViserServer(host=host, port=port, label=f"gs_regional: {trial.path.name}", verbose=False)
     up = _up_direction(trial.cameras)
     front = _frontal_camera(trial.cameras)
@@ -277,21 +279,20 @@ def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     # rig: scenes are often enclosed, e.g. rooms or the synthetic backdrop).
     centers = np.stack([c.center.numpy() for c in trial.cameras])
     radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) or 1.0
-    target = _look_at(front, edited.centers)
+    target = _look_at(front, splats["edited"].centers)
     origin = front.camera_to_world[:3, 3].numpy()
     position = origin + (target - origin) / np.linalg.norm(target - origin) * 1.5 * FRUSTUM_SIZE * radius
     server.initial_camera.position = tuple(float(v) for v in position)
     server.initial_camera.look_at = tuple(float(v) for v in target)
     server.initial_camera.up = tuple(float(v) for v in up)
     server.initial_camera.fov = 2 * math.atan(front.height / (2 * front.fy))
-    offset = _side_offset(front, edited.centers)
 
-    nodes = {}
-    for name, splats in (("edited", edited), ("source", source)):
-        nodes[name] = server.scene.add_gaussian_splats(
-            f"/{name}", centers=splats.centers, covariances=splats.covariances, rgbs=splats.rgbs,
-            opacities=splats.opacities, visible=name == "edited")
-
+    nodes = {
+        name: server.scene.add_gaussian_splats(
+            f"/{name}", centers=s.centers, covariances=s.covariances, rgbs=s.rgbs, opacities=s.opacities,
+            visible=name == "edited")
+        for name, s in splats.items()
+    }
     test = set(trial.test_indices)
     frustums = []
     for i, cam in enumerate(trial.cameras):
@@ -311,35 +312,40 @@ def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     show_cameras = gui.add_checkbox("Cameras", initial_value=True)
     gui.add_markdown(f"{len(trial.cameras) - len(test)} training cameras (blue), {len(test)} held out (orange)")
     gui.add_markdown(_metrics_markdown(trial))
-    notes = [f"Source: `{trial.source_label}`"]
-    for name, splats in (("edited", edited), ("source", source)):
-        if splats.shown < splats.total:
-            notes.append(f"**Subsampled:** the {name} scene shows a random {splats.shown:,} of its "
-                         f"{splats.total:,} Gaussians (`--max-gaussians` sets the cap)")
-        else:
-            notes.append(f"The {name} scene: all {splats.total:,} Gaussians")
-    gui.add_markdown("\n\n".join(notes))
+    gui.add_markdown(f"Source: `{trial.source_label}`")
+    largest = max(s.total for s in splats.values())
+    shown = gui.add_number("Gaussians shown", initial_value=max(s.shown for s in splats.values()),
+                           min=min(1000, largest), max=largest, step=1000, hint="per scene, a random subsample")
+    sampling = gui.add_markdown(_sampling_note(splats))
+
+    def colours(s: Splats) -> np.ndarray:
+        return s.highlighted_rgbs() if highlight.value else s.rgbs
 
     @scene_choice.on_click
     def _(_event) -> None:
-        choice = scene_choice.value
-        nodes["edited"].visible = choice in ("edited", "side by side")
-        nodes["source"].visible = choice in ("source", "side by side")
-        nodes["source"].position = tuple(float(v) for v in offset) if choice == "side by side" else (0.0, 0.0, 0.0)
-        showing.content = f"Showing: **{choice}**" + (" (source on the left)" if choice == "side by side" else "")
+        for name, node in nodes.items():
+            node.visible = name == scene_choice.value
+        showing.content = f"Showing: **{scene_choice.value}**"
 
     @highlight.on_update
     def _(_event) -> None:
-        for name, splats in (("edited", edited), ("source", source)):
-            nodes[name].rgbs = splats.highlighted_rgbs() if highlight.value else splats.rgbs
+        for name, s in splats.items():
+            nodes[name].rgbs = colours(s)
 
     @show_cameras.on_update
     def _(_event) -> None:
         for f in frustums:
             f.visible = show_cameras.value
 
+    @shown.on_update
+    def _(_event) -> None:
+        for name, (g, mask) in scenes.items():
+            s = splats[name] = to_splats(g, mask, int(shown.value))
+            nodes[name].set_gaussians(s.centers, s.covariances, colours(s), s.opacities)
+        sampling.content = _sampling_note(splats)
+
     shown_host = "localhost" if host in ("127.0.0.1", "0.0.0.0", "localhost") else host
-    return Viewer(server=server, url=f"http://{shown_host}:{server.get_port()}", edited=edited, source=source)
+    return Viewer(server=server, url=f"http://{shown_host}:{server.get_port()}", splats=splats)
 
 
 # ----- command line --------------------------------------------------------------------------
