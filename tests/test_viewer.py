@@ -82,6 +82,17 @@ def test_load_trial_of_a_scene_folder_reads_the_source_ply(tmp_path):
     assert trial.edited_mask is None and "no edit mask" in trial.mask_note
     assert trial.prompt == "give him a mustache" and trial.metrics == {}
 
+    # A trial from before save/edit_mask.npz: the rows come from its last checkpoint.
+    added = truth.edited.generation > 0
+    (trial_dir / "ckpts").mkdir()
+    torch.save({"state_dict": {"geometry.mask": torch.zeros(len(truth.edited), dtype=torch.bool),
+                               "geometry.generation": truth.edited.generation.clone(),
+                               "geometry.source_index": torch.where(added, -1, torch.arange(len(truth.edited)))}},
+               trial_dir / "ckpts" / "last.ckpt")
+    trial = view.load_trial(trial_dir)
+    np.testing.assert_array_equal(trial.edited_mask, added.numpy())
+    assert not trial.source_mask.any() and "ckpts/last.ckpt" in trial.mask_note
+
 
 def test_not_a_trial_is_one_line_exit_2(tmp_path):
     pytest.importorskip("viser", reason="the 'viewer' extra (viser) is not installed")

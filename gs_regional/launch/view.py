@@ -37,7 +37,7 @@ from gs_regional.utils.sh import sh_to_rgb
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8080
-DEFAULT_MAX_GAUSSIANS = 500_000  # per scene; a software-rendered browser still turns it smoothly
+DEFAULT_MAX_GAUSSIANS = 500_000  # per scene: fine for a browser with a GPU; a software-rendered one needs far fewer
 EDIT_MASK_FILE = "edit_mask.npz"
 MASK_COLOUR = np.array([1.0, 0.0, 1.0], dtype=np.float32)  # magenta: absent from most scenes
 MASK_TINT = 0.65  # how much of a highlighted Gaussian's colour is the mask colour
@@ -139,7 +139,7 @@ def _read_mask(trial: Path, n_edited: int) -> Tuple[Optional[Dict[str, np.ndarra
         ckpt = trial / "ckpts" / "last.ckpt"
         if not ckpt.is_file():
             return None, f"no edit mask: this trial has neither save/{EDIT_MASK_FILE} nor ckpts/last.ckpt"
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+        state = torch.load(ckpt, map_location="cpu", weights_only=True)["state_dict"]  # tensors only, no pickled code
         names = {"mask": "geometry.mask", "generation": "geometry.generation", "source_index": "geometry.source_index"}
         if not all(v in state for v in names.values()):
             return None, f"no edit mask: {ckpt} holds no per-Gaussian mask"
