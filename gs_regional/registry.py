@@ -18,19 +18,16 @@ class RegistryError(KeyError):
 
 
 def _kind(cls: type) -> str:
-    """Which kind of component a class is, from its module path (geometry, renderers, ...).
+    """Which kind of component a class is (geometry, renderers, guidance, ...): the package of the
+    first class in its MRO that lives in a built-in component package.
 
-    A simulator (gs_regional.sim) is of the kind of the interface it implements (its first base
-    class from another built-in package): the simulated editor is a guidance."""
-    parts = cls.__module__.split(".")
-    if len(parts) >= 2 and parts[0] == "gs_regional":
-        if parts[1] != "sim":
+    A simulator (gs_regional.sim) or a plugin is of the kind of the interface it implements: the
+    simulated editor is a guidance. A plugin class that derives from none of them is "custom"
+    (accepted for any kind: nothing tells what it is)."""
+    for c in cls.__mro__:
+        parts = c.__module__.split(".")
+        if len(parts) >= 2 and parts[0] == "gs_regional" and parts[1] in BUILTIN_PACKAGES and parts[1] != "sim":
             return parts[1]
-        for base in cls.__mro__[1:]:
-            kind = _kind(base)
-            if kind in BUILTIN_PACKAGES and kind != "sim":
-                return kind
-        return "sim"
     return "custom"
 
 
@@ -92,16 +89,22 @@ def load_builtins() -> None:
     _builtins_loaded = True
 
 
-def find(name: str, kind: str | None = None) -> type:
-    """Return the class registered as `name`; `kind` only sharpens the error message."""
+def find(name: str, kind: str | None = None, key: str | None = None) -> type:
+    """Return the class registered as `name`. With `kind`, a class of another kind is refused
+    (e.g. a renderer named as the guidance) and the error lists only the names of that kind;
+    `key` (e.g. "system.guidance_type") starts the error message."""
     load_builtins()
-    if name in _REGISTRY:
-        return _REGISTRY[name]
-    names = sorted(
-        n for n, c in _REGISTRY.items() if kind is None or _kind(c) == kind or _kind(c) == "custom"
-    )
+    where = f"{key}: " if key else ""
     what = f"{kind} " if kind else ""
-    msg = f"unknown {what}type '{name}'; registered: {', '.join(names) or '(none)'}"
+    names = sorted(n for n, c in _REGISTRY.items() if kind is None or _kind(c) in (kind, "custom"))
+    listed = f"registered {what}types: {', '.join(names) or '(none)'}"
+    if name in _REGISTRY:
+        cls = _REGISTRY[name]
+        actual = _kind(cls)
+        if kind is None or actual in (kind, "custom"):
+            return cls
+        raise RegistryError(f"{where}'{name}' is a {actual} component, not a {kind} one; {listed}")
+    msg = f"{where}unknown {what}type '{name}'; {listed}"
     if _IMPORT_ERRORS:
         failed = "; ".join(f"{m} ({err})" for m, err in _IMPORT_ERRORS.items())
         msg += f". It may be defined in a module that failed to import: {failed}"

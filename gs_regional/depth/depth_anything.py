@@ -64,7 +64,8 @@ class DepthAnything(DepthEstimator):
         from transformers.models.auto.modeling_auto import MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES
 
         c = self.cfg
-        source = Pretrained("DepthAnything", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size)
+        source = Pretrained("DepthAnything", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size,
+                            key="system.depth.pretrained")
         self.device, self.dtype = source.device, source.dtype
         config = source.load_config(MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES, "depth-estimation")
         source.require({"": ("preprocessor_config.json",)}, "image processor")

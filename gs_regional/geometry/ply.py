@@ -142,7 +142,7 @@ def read_ply(path, drop_nonfinite: bool = False) -> PlyGaussians:
     instead of failing.
     """
     path = os.fspath(path)
-    _check_file(path)
+    check_ply_size(path)  # a truncated file, or bytes the header does not declare
     data = _load_vertex(path)
     n = len(data)
     names = list(data.dtype.names or ())
@@ -297,28 +297,109 @@ _PLY_TYPE_BYTES = {
 }
 
 
+@dataclass
+class PlyHeader:
+    """What a PLY header declares: its format, its elements as (name, count, [(property, type)])
+    (a list property's type is "list"), and the header's own size in bytes."""
+
+    format: str
+    elements: List[tuple]
+    header_bytes: int
+
+    def data_bytes(self) -> Optional[int]:
+        """Bytes of the data the header declares, or None when it cannot be known from the header
+        alone (ASCII, or list properties)."""
+        if not self.format.startswith("binary"):
+            return None
+        total = 0
+        for _, count, props in self.elements:
+            if any(t not in _PLY_TYPE_BYTES for _, t in props):
+                return None
+            total += count * sum(_PLY_TYPE_BYTES[t] for _, t in props)
+        return total
+
+
+def read_ply_header(path) -> PlyHeader:
+    """Parse the header of the PLY at `path` (at most 64 KiB are read); PlyError names the file."""
+    path = os.fspath(path)
+    _check_file(path)
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    for marker in (b"end_header\n", b"end_header\r\n"):
+        if marker in head:
+            end = head.index(marker) + len(marker)
+            break
+    else:
+        raise PlyError(f"{path}: not a PLY file with a header under 64 KiB (no end_header line)")
+    fmt, elements = "", []
+    try:
+        for line in head[:end].decode("ascii").splitlines():
+            words = line.split()
+            if words[:1] == ["format"]:
+                fmt = words[1]
+            elif words[:1] == ["element"]:
+                elements.append((words[1], int(words[2]), []))
+            elif words[:1] == ["property"]:
+                if not elements:
+                    raise ValueError(f"property before any element: {line!r}")
+                elements[-1][2].append((words[-1], "list" if words[1] == "list" else words[1]))
+    except (UnicodeDecodeError, ValueError, IndexError) as e:
+        raise PlyError(f"{path}: cannot parse PLY header: {e}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise PlyError(f"{path}: cannot parse PLY header: unknown format {fmt!r}")
+    return PlyHeader(fmt, elements, end)
+
+
+def check_ply_size(path, header: Optional[PlyHeader] = None) -> None:
+    """Compare the file's size with what its header declares: fewer bytes is a truncated file
+    (PlyError); more bytes are data that no reader will see (a warning with the byte count)."""
+    path = os.fspath(path)
+    header = header or read_ply_header(path)
+    declared = header.data_bytes()
+    if declared is None:
+        return
+    actual = os.path.getsize(path) - header.header_bytes
+    counts = ", ".join(f"{count:,} {name}" for name, count, _ in header.elements)
+    if actual < declared:
+        raise PlyError(f"{path}: cannot parse PLY: truncated: the header declares {counts} ({declared:,} bytes of data) but the file "
+                       f"holds {actual:,} bytes after the header")
+    if actual > declared:
+        warnings.warn(f"{path}: the header declares {counts} ({declared:,} bytes of data) but the file holds "
+                      f"{actual - declared:,} more bytes after them; they are ignored (a header whose vertex count "
+                      "is too small?)", stacklevel=2)
+
+
+def check_ply_header(path) -> PlyHeader:
+    """A fast check of a 3DGS PLY before anything is loaded: the header parses, declares a
+    non-empty `vertex` element with the required properties, and the file's size matches it."""
+    path = os.fspath(path)
+    header = read_ply_header(path)
+    vertex = next((e for e in header.elements if e[0] == "vertex"), None)
+    if vertex is None:
+        names = ", ".join(e[0] for e in header.elements) or "none"
+        raise PlyError(f"{path}: no 'vertex' element (elements present: {names}); a 3DGS PLY stores one vertex "
+                       "per Gaussian")
+    if vertex[1] == 0:
+        raise PlyError(f"{path}: the 'vertex' element has 0 vertices: the scene holds no Gaussians")
+    props = {name for name, _ in vertex[2]}
+    missing = [p for p in _REQUIRED if p not in props]
+    if missing:
+        raise PlyError(f"{path}: missing vertex properties: {', '.join(missing)}")
+    check_ply_size(path, header)
+    return header
+
+
 def ply_bytes_with_rows(path, rows: int) -> int:
     """The size in bytes of the binary PLY at `path` (one `vertex` element of scalar properties,
     as `write_ply` writes it) if it held `rows` Gaussians instead of its own: exact, without
     writing it (e.g. the source scene's size in the layout of an edited scene's file)."""
     path = os.fspath(path)
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    marker = b"end_header\n"
-    if not head.startswith(b"ply") or marker not in head:
-        raise PlyError(f"{path}: not a PLY file with a header under 64 KiB")
-    header = head[: head.index(marker) + len(marker)].decode("ascii")
-    element, count, row_bytes = None, None, 0
-    for line in header.splitlines():
-        words = line.split()
-        if words[:1] == ["element"]:
-            if element is not None:
-                raise PlyError(f"{path}: more than one element; expected only 'vertex'")
-            element, count = words[1], words[2]
-        elif words[:1] == ["property"] and element == "vertex":
-            if words[1] not in _PLY_TYPE_BYTES:
-                raise PlyError(f"{path}: property '{' '.join(words[1:])}' is not a scalar PLY type")
-            row_bytes += _PLY_TYPE_BYTES[words[1]]
-    if element != "vertex" or "format binary" not in header:
+    header = read_ply_header(path)
+    if len(header.elements) != 1 or header.elements[0][0] != "vertex" or not header.format.startswith("binary"):
         raise PlyError(f"{path}: expected one binary 'vertex' element")
-    return len(header) - len(count) + len(str(int(rows))) + int(rows) * row_bytes
+    _, count, props = header.elements[0]
+    bad = [t for _, t in props if t not in _PLY_TYPE_BYTES]
+    if bad:
+        raise PlyError(f"{path}: property type '{bad[0]}' is not a scalar PLY type")
+    row_bytes = sum(_PLY_TYPE_BYTES[t] for _, t in props)
+    return header.header_bytes - len(str(count)) + len(str(int(rows))) + int(rows) * row_bytes

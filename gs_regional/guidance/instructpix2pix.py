@@ -60,7 +60,8 @@ class InstructPix2Pix(Guidance):
         c = self.cfg
         if c.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
-        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only)
+        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only,
+                            key="system.guidance.pretrained")
         self.device, self.dtype = source.device, source.dtype
         self._load(source)
         self._emb_cache: Dict[str, torch.Tensor] = {}

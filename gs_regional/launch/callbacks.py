@@ -10,36 +10,60 @@ from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 
 
 class TrialCheckpoint(ModelCheckpoint):
-    """ModelCheckpoint whose `last.ckpt` always holds the end of training.
+    """ModelCheckpoint whose `last.ckpt` always holds the end of training, written after the
+    system's outputs.
 
-    ModelCheckpoint writes `last.ckpt` every `every_n_train_steps` steps, and at the end of
-    training only if it wrote none during the run; a run that ends between two checkpoint steps
-    (5 steps, every 2) would resume from step 4. This writes the final step with the public
-    `Trainer.save_checkpoint` unless a checkpoint of that step was just written.
+    ModelCheckpoint writes `last.ckpt` every `every_n_train_steps` steps. The checkpoint of the
+    last step is written here once the system's `on_train_end` (which writes its outputs) has
+    returned: a run killed while writing its outputs resumes from the checkpoint before, so the
+    resume trains the last steps again and writes the outputs (a checkpoint of the last step
+    would resume to a finished loop that Lightning skips, outputs and all). The checkpoint also
+    holds the run's config (`run_config`, compared on resume), and `save_now` lets a system
+    checkpoint a stage boundary inside a step.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.saved_at_step: Optional[int] = None
+        self.run_config: Optional[Dict[str, Any]] = None
+        self.train_ended = False
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: Dict[str, Any]) -> None:
-        # Called for every full checkpoint the trainer writes (with save_weights_only Lightning
-        # skips this hook: then the final step may be written twice, which is only redundant).
         super().on_save_checkpoint(trainer, pl_module, checkpoint)
-        self.saved_at_step = trainer.global_step
+        if self.run_config is not None:
+            from gs_regional.launch.checkpoints import CONFIG_KEY
+
+            checkpoint[CONFIG_KEY] = self.run_config
 
     def last_checkpoint_path(self) -> str:
         return self.last_model_path or self.format_checkpoint_name({}, self.CHECKPOINT_NAME_LAST)
 
-    def on_train_end(self, trainer, pl_module) -> None:
-        super().on_train_end(trainer, pl_module)
-        if (
-            self.save_last
-            and trainer.global_step > 0
-            and self.saved_at_step != trainer.global_step
-            and not trainer.fast_dev_run
-        ):
+    def save_now(self, trainer) -> None:
+        """Write `last.ckpt` now (a system marks the end of a stage inside a training step)."""
+        if self.save_last and not trainer.fast_dev_run:
             trainer.save_checkpoint(self.last_checkpoint_path(), self.save_weights_only)
+
+    @staticmethod
+    def _at_last_step(trainer) -> bool:
+        return trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
+
+    def on_train_batch_end(self, trainer, *args: Any, **kwargs: Any) -> None:
+        if not self._at_last_step(trainer):  # the last step's checkpoint comes after the outputs
+            super().on_train_batch_end(trainer, *args, **kwargs)
+
+    def on_train_epoch_end(self, trainer, *args: Any, **kwargs: Any) -> None:
+        if not self._at_last_step(trainer):
+            super().on_train_epoch_end(trainer, *args, **kwargs)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        # Not ModelCheckpoint's (it writes last.ckpt now, before the system's outputs).
+        self.train_ended = True  # the system's own on_train_end runs next
+
+    def on_fit_end(self, trainer, pl_module) -> None:
+        # After the system's on_train_end (Lightning calls it between the callbacks' on_train_end
+        # and on_fit_end): only a run whose training loop ran in this process; a resumed run whose
+        # checkpoint was already final has nothing new to write.
+        if self.train_ended and trainer.global_step > 0:
+            self.save_now(trainer)
 
 
 class StageProgressBar(TQDMProgressBar):

@@ -16,11 +16,12 @@ def input_error_types() -> Tuple[Type[BaseException], ...]:
     from gs_regional.data.nerfstudio import TransformsError
     from gs_regional.data.points import PointsError
     from gs_regional.geometry.ply import PlyError
+    from gs_regional.launch.checkpoints import CheckpointError
     from gs_regional.utils.io import OverwriteError
     from gs_regional.utils.pretrained import PretrainedLoadError
 
     return (PlyError, ColmapError, TransformsError, CameraLoadError, ImageLoadError, PointsError,
-            PretrainedLoadError, OverwriteError)
+            PretrainedLoadError, OverwriteError, CheckpointError)
 
 
 def is_user_error(e: BaseException) -> bool:

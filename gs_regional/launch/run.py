@@ -16,13 +16,14 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 
 from gs_regional.config import ConfigError, load_config
+from gs_regional.launch.checkpoints import CONFIG_KEY, TrialCheckpointIO, check_resume_config, load_checkpoint_file
 from gs_regional.launch.cli import MODES
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import filter_warnings
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
 from gs_regional.launch.summary import RunInfo, print_summary
-from gs_regional.launch.trial import now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
-from gs_regional.registry import RegistryError, find, load_builtins
+from gs_regional.launch.trial import TrialLock, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
+from gs_regional.registry import find, load_builtins
 
 log = logging.getLogger(__name__)
 
@@ -129,28 +130,34 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
     with warnings.catch_warnings():
         filter_warnings(verbose)
         lightning.seed_everything(cfg.seed, workers=True, verbose=verbose)
-        # Build (and so validate) everything before a trial dir is created for the run.
-        try:
-            dm_cls = find(cfg.data_type, kind="data")
-        except RegistryError as e:
-            raise RegistryError(f"data_type: {e}") from None
-        try:
-            system_cls = find(cfg.system_type, kind="systems")
-        except RegistryError as e:
-            raise RegistryError(f"system_type: {e}") from None
+        # Check everything, cheapest first, before a trial dir is created and before any model is
+        # loaded: the registered names, the scene (cameras, photos, points: Lightning calls
+        # setup() again, the datamodules keep what they loaded), the system's own input files (its
+        # `check_inputs`, e.g. the PLY's header), then the system with its priors.
+        dm_cls = find(cfg.data_type, kind="data", key="data_type")
+        system_cls = find(cfg.system_type, kind="systems", key="system_type")
         datamodule = dm_cls(cfg.data)
+        datamodule.setup(STAGES[mode])
+        if hasattr(system_cls, "check_inputs"):
+            system_cls.check_inputs(cfg.system)
+        checkpoint = None
+        if resume:
+            checkpoint = load_checkpoint_file(resume, mmap=True)  # names the file, offers the previous one
+            changes = check_resume_config(resume, checkpoint.get(CONFIG_KEY), run_config(cfg),
+                                          getattr(system_cls, "RESUME_FIXED_KEYS", ()))
         system = system_cls(cfg.system, resumed=bool(resume))
         kw = trainer_kwargs(cfg, system, mode, args.gpu, verbose)
         checkpoint_settings(cfg)
-        # Read the scene (cameras, photos, points) now: a bad input file ends the run before it
-        # has a trial dir. Lightning calls setup() again; the datamodules keep what they loaded.
-        datamodule.setup(STAGES[mode])
 
         trial, reused = trial_dir_for(cfg, resume)
         cfg.trial_dir = str(trial)
-        # Inputs read by the system itself (e.g. the PLY) fail inside the Lightning run.
-        with removed_if_start_fails(trial, reused, is_user_error):
+        # Inputs read by the system inside the Lightning run fail there: the trial dir goes again.
+        with removed_if_start_fails(trial, reused, is_user_error), TrialLock(trial):
             write_trial_files(trial, cfg, args.config, shlex.join(["python", "launch.py", *argv]), reused)
+            if checkpoint is not None and changes:
+                log.warning("resume: the config differs from the checkpoint's (%s); this run uses the new values, "
+                            "written to %s", "; ".join(changes), trial / "configs" / f"parsed@{cfg.timestamp}.yaml")
+            del checkpoint  # Lightning reads it again (the mapped file is not held meanwhile)
             trainer = _make_trainer(cfg, kw, trial, reused)
             system.set_trial_dir(trial)
             system.attach_datamodule(datamodule)
@@ -172,12 +179,23 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
     return 0
 
 
+def run_config(cfg: Any) -> Dict[str, Any]:
+    """The resolved config of a run as stored in its checkpoints (and compared on resume)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
 def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool) -> "lightning.Trainer":
     from gs_regional.launch.callbacks import StageProgressBar
 
     callbacks = [StageProgressBar()] if kw.get("enable_progress_bar", True) else []
     if kw.get("enable_checkpointing", True):
-        callbacks.insert(0, checkpoint_callback(cfg, trial))
+        callback = checkpoint_callback(cfg, trial)
+        callback.run_config = run_config(cfg)
+        callbacks.insert(0, callback)
+        # Atomic writes in the checkpoint's own folder, weights-only reads that name the file.
+        kw = {**kw, "plugins": [*(kw.get("plugins") or []), TrialCheckpointIO()]}
     if kw.get("logger", True) is True:
         # A resumed run logs into its own folder: Lightning's CSV logger would delete the old file.
         version = f"resume@{cfg.timestamp}" if reused else ""

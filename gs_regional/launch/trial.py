@@ -32,6 +32,21 @@ def _claim_dir(base: Path) -> Path:
             candidate = base.with_name(f"{base.name}-{n}")
 
 
+def path_component(key: str, value: str) -> str:
+    """`value` as one folder name: the trial root is the only place a run writes, so a name or tag
+    that is empty, `.`/`..` or holds a path separator is refused, naming the key."""
+    from gs_regional.config import ConfigError
+
+    value = str(value)
+    separators = {"/", "\\", os.sep, os.altsep or "/", "\0"}
+    if value in ("", ".", "..") or any(sep in value for sep in separators):
+        raise ConfigError(
+            f"{key}='{value}' must be a single folder name (no '/', '\\', '.' or '..'): the trial dir is "
+            f"<exp_root_dir>/<name>/<tag>@<timestamp> and a run writes nowhere else"
+        )
+    return value
+
+
 def trial_dir_for(cfg: Any, resume: Optional[str]) -> Tuple[Path, bool]:
     """(trial dir, reused?). A resume checkpoint inside `<trial>/ckpts/` reuses `<trial>`."""
     if resume:
@@ -39,9 +54,55 @@ def trial_dir_for(cfg: Any, resume: Optional[str]) -> Tuple[Path, bool]:
         if ckpt.parent.name == "ckpts":
             return ckpt.parent.parent, True
         log.warning("resume checkpoint %s is not inside a trial's ckpts/ folder: starting a new trial dir", resume)
-    tag = str(cfg.tag or cfg.system_type or "run").replace("/", "-").replace(os.sep, "-")
-    name = f"{tag}@{cfg.timestamp}" if cfg.use_timestamp else tag
-    return _claim_dir(Path(cfg.exp_root_dir) / str(cfg.name) / name), False
+    name = path_component("name", cfg.name)
+    tag = path_component("tag" if cfg.tag else "system_type", cfg.tag or cfg.system_type or "run")
+    folder = f"{tag}@{cfg.timestamp}" if cfg.use_timestamp else tag
+    return _claim_dir(Path(cfg.exp_root_dir) / name / folder), False
+
+
+LOCK_NAME = ".lock"
+
+
+class TrialLock:
+    """An exclusive lock on a trial dir (`<trial>/.lock`, flock) while a run writes into it: a
+    second run of the same trial (two resumes of one checkpoint) is refused instead of writing the
+    same checkpoint and appending to the same logs. The kernel drops the lock when the process
+    ends, however it ends (kill -9 included), so a stale lock never blocks a resume."""
+
+    def __init__(self, trial: Path) -> None:
+        self.path = Path(trial) / LOCK_NAME
+        self._fd: Optional[int] = None
+
+    def acquire(self) -> "TrialLock":
+        import fcntl
+
+        from gs_regional.config import ConfigError
+
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip() or "another process"
+            os.close(fd)
+            raise ConfigError(
+                f"trial dir {self.path.parent} is in use by another run ({holder}); wait for it to end "
+                "(two runs writing one trial would mix their checkpoints and logs)"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing drops the flock
+            self._fd = None
+
+    def __enter__(self) -> "TrialLock":
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
 
 
 def _write_text(path: Path, text: str) -> None:

@@ -40,7 +40,8 @@ class ClipMetrics:
         from transformers import AutoImageProcessor, CLIPModel, CLIPTokenizer
 
         self.pretrained = pretrained
-        source = Pretrained("ClipMetrics", pretrained, device, dtype, local_files_only, max_batch_size)
+        source = Pretrained("ClipMetrics", pretrained, device, dtype, local_files_only, max_batch_size,
+                            key="system.eval.clip_model")
         self.device, self.dtype = source.device, source.dtype
         self.max_batch_size = max_batch_size
         source.load_config({"clip"}, "CLIP")

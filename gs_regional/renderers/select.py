@@ -65,7 +65,7 @@ def check_renderer_config(name: str, options: Any, where: str = "system.renderer
     candidates = AUTO_CANDIDATES if name == AUTO else (name,)
     for chosen in candidates:
         kept, _ = renderer_options(name, options, chosen)
-        parse_structured(find(chosen, kind="renderers").Config, kept, where=where)
+        parse_structured(find(chosen, kind="renderers", key=f"{where}_type").Config, kept, where=where)
 
 
 def make_renderer(name: str, options: Any, device: torch.device, where: str = "system.renderer") -> Renderer:

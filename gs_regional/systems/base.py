@@ -219,11 +219,27 @@ class BaseSystem(lightning.LightningModule):
     def load_extra_state(self, state: Dict[str, Any]) -> None:
         """Restore `extra_state()`; runs before the state dict is loaded into the module."""
 
+    def save_stage_checkpoint(self) -> None:
+        """Checkpoint now, inside a training step, at the end of a stage (e.g. localization) that
+        the step goes on from: a resume repeats the step from where this left it (the system's
+        own state says which stage comes next) with the RNG as it is now. Needs the run's
+        checkpoint callback (launch.py's), otherwise does nothing."""
+        trainer = self.attached_trainer()
+        callback = getattr(trainer, "checkpoint_callback", None) if trainer is not None else None
+        if callback is None or not hasattr(callback, "save_now"):
+            return
+        self._mid_step_save = True
+        try:
+            callback.save_now(trainer)
+        finally:
+            self._mid_step_save = False
+
     def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        mid_step = getattr(self, "_mid_step_save", False)
         checkpoint[CHECKPOINT_KEY] = {
             "stage": self.stage,
             "rng": capture_rng_state(),
-            "rng_restore": "at_load" if self._saved_at_epoch_end() else "before_next_step",
+            "rng_restore": "at_load" if self._saved_at_epoch_end() and not mid_step else "before_next_step",
             "extra": self.extra_state(),
         }
 

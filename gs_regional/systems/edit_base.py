@@ -14,7 +14,7 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
-from gs_regional.geometry.ply import ply_bytes_with_rows
+from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.metrics.region import footprint, region_scores, unedited_scores
@@ -25,6 +25,8 @@ from gs_regional.systems.base import GaussianSystem
 from gs_regional.utils.image import dilate
 
 log = logging.getLogger(__name__)
+
+MIN_FRACTION_SEEN = 0.1  # below this fraction of Gaussians in any camera's view, the run warns
 
 
 @dataclass
@@ -57,6 +59,36 @@ class EditSystemBase(GaussianSystem):
         lambda_lpips: float = 0.0  # needs the `lpips` extra
         eval: EvalConfig = field(default_factory=EvalConfig)
 
+    @classmethod
+    def check_inputs(cls, section) -> None:
+        """launch.py calls this before the system (and its priors) is built: the scene's PLY must
+        exist and have a usable header, or the run stops with one line naming the file."""
+        ply = (section.get("geometry") or {}).get("ply") if hasattr(section, "get") else None
+        if ply:
+            try:
+                check_ply_header(str(ply))
+            except PlyError as e:
+                raise PlyError(f"system.geometry.ply: {e}") from None
+
+    def check_scene(self) -> None:
+        """Before anything is edited: the cameras must see the scene (a PLY and cameras of two
+        different scenes, or of one scene in two coordinate frames, see nothing of each other)."""
+        means = self.geometry.means.detach()
+        seen = torch.zeros(len(means), dtype=torch.bool, device=means.device)
+        for cam in self.scene.cameras:
+            seen |= cam.to(means.device).in_view(means)
+        fraction = float(seen.float().mean()) if len(means) else 0.0
+        where = f"system.geometry.ply={self.cfg.geometry.get('ply')}" if self.cfg.geometry.get("ply") else "the scene"
+        if fraction == 0.0:
+            raise ConfigError(
+                f"the cameras do not see the scene: none of the {len(means):,} Gaussians of {where} lies in the view of "
+                f"any of the {len(self.scene.cameras)} cameras; check that the cameras (data.source) belong to this PLY "
+                "(same scene, coordinate frame and scale)"
+            )
+        if fraction < MIN_FRACTION_SEEN:
+            self.warn(f"only {fraction:.1%} of the Gaussians lie in the view of any camera: check that the cameras "
+                      f"(data.source) belong to {where}")
+
     def configure(self) -> None:
         """Build the non-scene components (called from the constructor of subclasses)."""
         cfg = self.cfg
@@ -66,7 +98,7 @@ class EditSystemBase(GaussianSystem):
         check_renderer_config(cfg.renderer_type, cfg.renderer)
         self._source_renders: Optional[List[torch.Tensor]] = None
         # The 2D editor is not an nn.Module of the system: its weights never enter checkpoints.
-        self.guidance = find(cfg.guidance_type, kind="guidance")(cfg.guidance)
+        self.guidance = find(cfg.guidance_type, kind="guidance", key="system.guidance_type")(cfg.guidance)
         self.lpips = None
         if cfg.lambda_lpips > 0:
             try:
@@ -89,7 +121,7 @@ class EditSystemBase(GaussianSystem):
         dm.setup(stage)
         self.scene = dm.scene
         gt = self.scene.ground_truth
-        geometry_cls = find(self.cfg.geometry_type, kind="geometry")
+        geometry_cls = find(self.cfg.geometry_type, kind="geometry", key="system.geometry_type")
         if self.cfg.geometry.get("ply"):
             self.geometry = geometry_cls(self.cfg.geometry)
         elif gt is not None:
@@ -121,6 +153,7 @@ class EditSystemBase(GaussianSystem):
         # setup() ran before Lightning moved the module to its device: the source scene follows it
         # and is rendered there, once (a resumed run renders it again; renders are deterministic).
         self.source_model.to(self.device)
+        self.check_scene()
         t0 = time.perf_counter()
         with torch.no_grad():
             self._source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
@@ -177,12 +210,16 @@ class EditSystemBase(GaussianSystem):
 
     # ----- checkpoint ----------------------------------------------------------------------------
     def extra_state(self) -> dict:
-        return {"timings": dict(self.timings), "counts": dict(self.counts), "warnings": list(self.warnings)}
+        # The editor's counters too: a resumed run reports the whole run's UNet evaluations.
+        return {"timings": dict(self.timings), "counts": dict(self.counts), "warnings": list(self.warnings),
+                "guidance_counters": dict(self.guidance.counters())}
 
     def load_extra_state(self, state: dict) -> None:
         self.timings = dict(state.get("timings", {}))
         self.counts = dict(state.get("counts", {}))
         self.warnings = list(state.get("warnings", []))
+        for name, value in state.get("guidance_counters", {}).items():
+            setattr(self.guidance, name, int(value))
 
     # ----- outputs -------------------------------------------------------------------------------
     def evaluation_region(self, index: int) -> Optional[torch.Tensor]:

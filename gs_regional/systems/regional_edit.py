@@ -88,19 +88,18 @@ class RegionalEdit(EditSystemBase):
             )
         )
 
+    # Settings a resume must keep (launch.py refuses a change): the step -> cycle mapping, and the
+    # stages that a checkpoint has usually passed already (a change would be silently ignored).
+    RESUME_FIXED_KEYS: ClassVar[tuple] = ("refine.iterations_per_cycle", "localize", "localization", "initialize", "init")
+
     def __init__(self, cfg=None, resumed: bool = False) -> None:
         super().__init__(cfg, resumed=resumed)
+        self.check_settings()  # before configure() loads the priors
         self.configure()
-        r = self.cfg.refine
-        if r.constant_t is None and len(r.t_schedule) < r.cycles:
-            raise ConfigError(
-                f"system.refine.t_schedule has {len(r.t_schedule)} timesteps for {r.cycles} cycles; "
-                "give one start timestep per cycle (or system.refine.constant_t)"
-            )
         self.cfg.densify.check("system.densify")
         self.depth_estimator = None
         if self.cfg.initialize:
-            self.depth_estimator = find(self.cfg.depth_type, kind="depth")(self.cfg.depth)
+            self.depth_estimator = find(self.cfg.depth_type, kind="depth", key="system.depth_type")(self.cfg.depth)
         # Edit state (all of it goes into checkpoints).
         self.phase = "localize"  # localize -> initialize -> refine -> done
         self.v_first: Optional[int] = None
@@ -112,6 +111,41 @@ class RegionalEdit(EditSystemBase):
         self.source_selection: Optional[torch.Tensor] = None  # (n_source,) bool, set by localization
         self.first_edit: Optional[torch.Tensor] = None
         self.refine_start_count = 0
+
+    def check_settings(self) -> None:
+        """Settings that cannot work fail at start-up, naming the key and the allowed range."""
+        r, lc = self.cfg.refine, self.cfg.localization
+        n_t = int(getattr(find(self.cfg.guidance_type, kind="guidance", key="system.guidance_type"),
+                          "num_train_timesteps", 1000))
+
+        def need(ok: bool, key: str, allowed: str, value) -> None:
+            if not ok:
+                raise ConfigError(f"system.{key} must be {allowed}, got {value!r}")
+
+        need(r.cycles >= 1, "refine.cycles", "an integer >= 1", r.cycles)
+        need(r.iterations_per_cycle >= 1, "refine.iterations_per_cycle", "an integer >= 1", r.iterations_per_cycle)
+        need(r.m >= 0, "refine.m", "an integer >= 0 (views edited around each cycle's frontal view)", r.m)
+        need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
+        need(0 <= lc.timestep < n_t, "localization.timestep", f"a timestep in [0, {n_t - 1}]", lc.timestep)
+        if r.constant_t is not None:
+            need(0 <= r.constant_t < n_t, "refine.constant_t", f"a timestep in [0, {n_t - 1}]", r.constant_t)
+            return
+        t = list(r.t_schedule)
+        if len(t) < r.cycles:
+            raise ConfigError(
+                f"system.refine.t_schedule has {len(t)} timesteps for {r.cycles} cycles; "
+                "give one start timestep per cycle (or system.refine.constant_t)"
+            )
+        need(all(0 <= x < n_t for x in t), "refine.t_schedule", f"timesteps in [0, {n_t - 1}]", t)
+        need(all(a >= b for a, b in zip(t, t[1:])), "refine.t_schedule",
+             "non-increasing (each cycle starts from less noise than the one before, e.g. [750, 500, 250])", t)
+
+    def check_scene(self) -> None:
+        super().check_scene()
+        n = len(self.scene.train_indices)
+        if self.cfg.refine.m >= n - 1:
+            log.warning("system.refine.m=%d: the scene has %d training views, so every cycle edits all of them",
+                        self.cfg.refine.m, n)
 
     @property
     def total_steps(self) -> int:
@@ -315,8 +349,10 @@ class RegionalEdit(EditSystemBase):
                     f"lifted 3D mask by IoU {agreement:.2f} in the better half of the views, below "
                     f"system.localization.min_view_agreement={self.cfg.localization.min_view_agreement}); the "
                     "instruction names nothing the editor finds consistently.")
+            self.save_stage_checkpoint()  # a kill later in this step resumes after localization
         if self.phase == "initialize":
             self.run_initialize()
+            self.save_stage_checkpoint()
         if self.phase != "refine":
             return None
         r = self.cfg.refine
@@ -385,6 +421,8 @@ class RegionalEdit(EditSystemBase):
             "localize_views": list(getattr(self, "localize_views", [])),
             "localize_metrics": dict(getattr(self, "localize_metrics", {})),
             "init_report": getattr(self, "init_report", None),
+            # The 2D masks choose the first view: needed by a resume between localize and initialize.
+            "masks2d": self.masks2d.cpu() if self.phase == "initialize" and self.masks2d is not None else None,
         }
 
     def load_extra_state(self, state: dict) -> None:
@@ -403,8 +441,11 @@ class RegionalEdit(EditSystemBase):
         self.localize_views = state["localize_views"]
         self.localize_metrics = state["localize_metrics"]
         self.init_report = state["init_report"]
+        self.masks2d = state.get("masks2d")
 
     def on_train_start(self) -> None:
+        if self.masks2d is not None:
+            self.masks2d = self.masks2d.to(self.device)
         if self.cycle_targets is not None:
             self.cycle_targets = self.cycle_targets.to(self.device)
         if self.first_edit is not None:

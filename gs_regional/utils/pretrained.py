@@ -69,6 +69,55 @@ def check_local_folder(pretrained: str, required: Dict[str, Sequence[str]], what
     return True
 
 
+HUB_PROBE_TIMEOUT_S = 10.0  # one request to the hub; no retries
+
+
+def _hub_offline() -> bool:
+    try:
+        from huggingface_hub import constants
+
+        return bool(constants.HF_HUB_OFFLINE)
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def probe_hub(repo_id: str) -> None:
+    """One request to the Hugging Face hub for `repo_id` (raises on any failure, no retries)."""
+    from huggingface_hub import HfApi
+
+    HfApi().model_info(repo_id, timeout=HUB_PROBE_TIMEOUT_S)
+
+
+def locate_hub_model(what: str, pretrained: str, local_files_only: bool, key: str) -> bool:
+    """For a hub id (not a local folder): True when the model is in the local Hugging Face cache
+    (then load it from there, without asking the network). Otherwise, unless the hub answers one
+    request, fail at once with one line that names the model and says how to provide it, instead
+    of retrying every file's download for minutes."""
+    try:
+        from huggingface_hub import snapshot_download
+
+        snapshot_download(pretrained, local_files_only=True)
+        return True
+    except Exception:  # noqa: BLE001 - not cached (or not a valid id): ask the hub once below
+        pass
+    how = (f"give a local copy with {key}=/path/to/folder, or download it where the network is reachable "
+           f"(huggingface-cli download {pretrained})")
+    if local_files_only or _hub_offline():
+        raise PretrainedLoadError(
+            f"{what}: '{pretrained}' is not a local folder and not in the Hugging Face cache, and offline mode is on "
+            f"(HF_HUB_OFFLINE or local_files_only); {how}"
+        )
+    try:
+        probe_hub(pretrained)
+    except Exception as e:  # noqa: BLE001 - unreachable hub, unknown repo, refused access
+        reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        raise PretrainedLoadError(
+            f"{what}: '{pretrained}' is not a local folder and not in the Hugging Face cache, and the hub "
+            f"did not answer ({type(e).__name__}: {reason}); {how}"
+        ) from None
+    return False
+
+
 def load_pretrained(what: str, pretrained: str, local_files_only: bool, fn: Callable[[], T]) -> T:
     """Run one from_pretrained call and turn any failure into an error that names the model and the
     part, with a hint when a hub id could not be found offline."""
@@ -112,14 +161,19 @@ class Pretrained:
         dtype: str = "auto",
         local_files_only: bool = False,
         max_batch_size: Optional[int] = None,
+        key: str = "pretrained",
     ) -> None:
         if max_batch_size is not None and max_batch_size < 1:
             raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
         self.what = what
         self.pretrained = pretrained
         self.local_files_only = local_files_only
+        self.key = key  # the config key that names the model, for error messages
         self.device = resolve_device(device)
         self.dtype = resolve_dtype(dtype, self.device)
+        # A hub id: found in the cache (then loaded from it alone) or the hub answers, else fail now.
+        if not check_local_folder(pretrained, {}, what) and locate_hub_model(what, pretrained, local_files_only, key):
+            self.local_files_only = True
 
     def require(self, required: Dict[str, Sequence[str]], part: str = "") -> bool:
         """`check_local_folder` for this model; `part` is named in the error."""

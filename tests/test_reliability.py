@@ -1,0 +1,362 @@
+"""Nothing lost, nothing silent (issue 13): a table of bad inputs and faults -> what the user gets,
+and kill-and-resume at every stage boundary of the regional edit compared with an uninterrupted run.
+
+Every run is the demo (simulated editor and depth) at a tiny size, in-process, except the one that
+is really killed (SIGKILL) while it writes a checkpoint. The table is the README's "What happens
+when things go wrong"."""
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from trial_helpers import ply_arrays, write_scene_folder
+from gs_regional.geometry.ply import PlyError, check_ply_header, read_ply
+from gs_regional.launch import main
+from gs_regional.launch.checkpoints import load_checkpoint_file, previous_path, save_atomic
+from gs_regional.launch.trial import TrialLock
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = str(ROOT / "configs" / "demo.yaml")
+EDIT = str(ROOT / "configs" / "edit.yaml")
+# The demo's stages at a tiny size: 3 cycles x 4 steps, a checkpoint at every cycle boundary.
+TINY = [
+    "data.n_cameras=12", "data.width=32", "data.height=32", "system.eval.turntable_frames=2",
+    "system.eval.max_test_views=2", "system.localization.max_views=6", "system.refine.iterations_per_cycle=4",
+    "system.refine.m=3", "system.densify.every=2", "checkpoint.every_n_train_steps=4",
+    "trainer.enable_progress_bar=false", "use_timestamp=false",
+]
+TIMING_KEYS = ("seconds", "seconds_total")  # wall-clock: the only metrics allowed to differ
+
+
+class SimulatedKill(BaseException):
+    """Stands for kill -9 in-process: not an Exception, so nothing on the way handles it as an
+    error (Lightning writes no checkpoint on an exception either)."""
+
+
+def launch(out, name, *overrides, config=DEMO):
+    return main(["--config", config, "--train", f"exp_root_dir={out}", f"name={name}", *TINY, *overrides])
+
+
+def trial(out, name):
+    return Path(out) / name / "add"
+
+
+def metrics(trial_dir):
+    m = json.loads((Path(trial_dir) / "save" / "metrics.json").read_text())
+    return {k: v for k, v in m.items() if k not in TIMING_KEYS}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One uninterrupted tiny run, shared by every comparison below."""
+    out = tmp_path_factory.mktemp("reliability")
+    assert launch(out, "reference") == 0
+    return {"out": out, "trial": trial(out, "reference")}
+
+
+def same_outputs(resumed, reference):
+    """edited.ply and metrics.json (timings aside) as the uninterrupted run wrote them. Exact:
+    the resumed run repeats the same float operations in the same order on the same machine."""
+    a = ply_arrays(Path(resumed) / "save" / "edited.ply")
+    b = ply_arrays(Path(reference) / "save" / "edited.ply")
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert metrics(resumed) == metrics(reference)
+
+
+def last_error_line(capsys):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert lines, "nothing was printed"
+    return lines[-1]
+
+
+# ------------------------------------------------------------------ errors at the door (exit 2)
+def _far_ply(tmp):
+    """The demo's scene moved 1000 units along the axis of its camera ring: no camera sees it."""
+    from gs_regional.sim.scene import make_edit
+
+    g = make_edit("add").source
+    with torch.no_grad():
+        g.means += torch.tensor([0.0, 1000.0, 0.0])
+    path = tmp / "far.ply"
+    g.save_ply(str(path))
+    return path
+
+
+def _truncated_ply(tmp):
+    from gs_regional.sim.scene import make_edit
+
+    path = tmp / "cut.ply"
+    make_edit("add").source.save_ply(str(path))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 1000])
+    return path
+
+
+# (case, overrides (given tmp), fragments of the one-line error). Every one exits 2, leaves no
+# trial dir behind and loads no model.
+DOOR_CASES = [
+    ("guidance of the wrong kind", lambda t: ["system.guidance_type=torch-rasterizer"],
+     ["system.guidance_type", "'torch-rasterizer' is a renderers component", "simulated-editor"]),
+    ("renderer of the wrong kind", lambda t: ["system.renderer_type=simulated-depth"],
+     ["system.renderer_type", "is a depth component", "torch-rasterizer"]),
+    ("iterations_per_cycle 0", lambda t: ["system.refine.iterations_per_cycle=0"],
+     ["system.refine.iterations_per_cycle", ">= 1"]),
+    ("cycles 0", lambda t: ["system.refine.cycles=0"], ["system.refine.cycles", ">= 1"]),
+    ("cycles negative", lambda t: ["system.refine.cycles=-2"], ["system.refine.cycles", ">= 1"]),
+    ("t_schedule increasing", lambda t: ["system.refine.t_schedule=[250,500,750]"],
+     ["system.refine.t_schedule", "non-increasing"]),
+    ("t_schedule out of range", lambda t: ["system.refine.t_schedule=[1200,500,250]"],
+     ["system.refine.t_schedule", "[0, 999]"]),
+    ("localization timestep out of range", lambda t: ["system.localization.timestep=1000"],
+     ["system.localization.timestep", "[0, 999]"]),
+    ("name with ..", lambda t: ["name=../../escaped"], ["name='../../escaped'", "single folder name"]),
+    ("absolute name", lambda t: [f"name={t / 'abs'}"], ["name=", "single folder name"]),
+    ("tag with a slash", lambda t: ["tag=a/b"], ["tag='a/b'", "single folder name"]),
+    ("truncated PLY", lambda t: [f"system.geometry.ply={_truncated_ply(t)}"],
+     ["system.geometry.ply", "cut.ply", "truncated", "664,020 bytes", "663,020 bytes"]),
+    ("cameras that see nothing", lambda t: [f"system.geometry.ply={_far_ply(t)}"],
+     ["the cameras do not see the scene", "far.ply"]),
+]
+
+
+@pytest.mark.parametrize("case,overrides,fragments", DOOR_CASES, ids=[c[0] for c in DOOR_CASES])
+def test_bad_setting_or_input_is_one_line_exit_2_and_no_trial_dir(case, overrides, fragments, tmp_path, capsys):
+    out = tmp_path / "outputs"
+    assert launch(out, "door", *overrides(tmp_path)) == 2
+    line = last_error_line(capsys)
+    assert line.startswith("error: "), line
+    for f in fragments:
+        assert f in line, line
+    assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
+    assert not (tmp_path / "abs").exists() and not (tmp_path.parent / "escaped").exists()
+
+
+def _no_model_loading(monkeypatch):
+    """Any from_pretrained call fails the test: the error must come before."""
+    from gs_regional.utils import pretrained
+
+    def refuse(*a, **k):
+        raise AssertionError("a model was loaded before the inputs were checked")
+
+    monkeypatch.setattr(pretrained, "load_pretrained", refuse)
+
+
+def test_missing_ply_fails_before_any_model_is_loaded(tmp_path, capsys, monkeypatch):
+    _no_model_loading(monkeypatch)
+    scene, _ = write_scene_folder(tmp_path, 6, 32)
+    t0 = time.perf_counter()
+    code = main(["--config", EDIT, "--train", f"exp_root_dir={tmp_path / 'out'}", f"data.source={scene}",
+                 f"system.geometry.ply={tmp_path / 'nope.ply'}", "system.prompt=x"])
+    assert code == 2
+    line = last_error_line(capsys)
+    assert "system.geometry.ply" in line and "nope.ply" in line and "not found" in line, line
+    assert time.perf_counter() - t0 < 30  # no download attempt (it took minutes of retries)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("offline", [True, False], ids=["offline mode", "hub unreachable"])
+def test_uncached_model_without_network_fails_at_once_naming_model_and_key(offline, tmp_path, capsys, monkeypatch):
+    from huggingface_hub import constants
+
+    from gs_regional.utils import pretrained
+
+    scene, ply = write_scene_folder(tmp_path, 6, 32)
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", offline)
+    probes = []
+
+    def unreachable(repo_id):
+        probes.append(repo_id)
+        raise ConnectionError("Name or service not known")
+
+    monkeypatch.setattr(pretrained, "probe_hub", unreachable)
+    _no_model_loading(monkeypatch)
+    code = main(["--config", EDIT, "--train", f"exp_root_dir={tmp_path / 'out'}", f"data.source={scene}",
+                 f"system.geometry.ply={ply}", "system.prompt=x", "system.guidance.pretrained=nobody/no-such-model"])
+    assert code == 2
+    line = last_error_line(capsys)
+    assert "nobody/no-such-model" in line and "system.guidance.pretrained=/path/to/folder" in line, line
+    assert probes == ([] if offline else ["nobody/no-such-model"])  # one request at most, no retries
+    assert not (tmp_path / "out").exists()
+
+
+def test_ply_with_more_data_than_its_header_declares_warns_with_the_byte_count(tmp_path):
+    from gs_regional.sim.scene import make_edit
+
+    path = tmp_path / "long.ply"
+    make_edit("add").source.save_ply(str(path))
+    n = read_ply(path).num_gaussians
+    with open(path, "ab") as f:
+        f.write(b"\0" * 248)  # 248 bytes = 1 more row of 62 float32 (SH degree 3)
+    with pytest.warns(UserWarning, match=r"248 more bytes"):
+        g = read_ply(path)
+    assert g.num_gaussians == n
+    with pytest.warns(UserWarning, match=r"248 more bytes"):
+        check_ply_header(path)
+    with open(path, "r+b") as f:  # and fewer bytes than declared: refused
+        f.truncate(path.stat().st_size - 500)
+    with pytest.raises(PlyError, match="truncated"):
+        read_ply(path)
+
+
+def test_m_above_the_number_of_views_says_all_views_are_used(tmp_path, caplog):
+    assert launch(tmp_path, "many", "system.refine.m=100", "trainer.max_steps=1") == 0
+    assert any("every cycle edits all of them" in r.getMessage() and "system.refine.m=100" in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
+# ------------------------------------------------------------------ checkpoints and the trial dir
+def _copy_trial(reference, tmp_path, name):
+    dst = tmp_path / name / "add"
+    shutil.copytree(reference["trial"], dst)
+    return dst
+
+
+def test_truncated_checkpoint_is_named_offers_the_previous_and_changes_nothing(reference, tmp_path, capsys):
+    trial_dir = _copy_trial(reference, tmp_path, "corrupt")
+    ckpt = trial_dir / "ckpts" / "last.ckpt"
+    assert previous_path(ckpt).is_file()  # the checkpoint before the last one is kept
+    data = ckpt.read_bytes()
+    ckpt.write_bytes(data[: len(data) // 2])
+    before = sorted(p.relative_to(trial_dir) for p in trial_dir.rglob("*"))
+    cmd = (trial_dir / "cmd.txt").read_text()
+    assert launch(tmp_path, "corrupt", f"resume={ckpt}") == 2
+    line = last_error_line(capsys)
+    assert str(ckpt) in line and "cannot be loaded" in line and f"resume={previous_path(ckpt)}" in line, line
+    assert sorted(p.relative_to(trial_dir) for p in trial_dir.rglob("*")) == before
+    assert (trial_dir / "cmd.txt").read_text() == cmd
+
+
+def test_second_writer_of_a_trial_is_refused(reference, tmp_path, capsys):
+    trial_dir = _copy_trial(reference, tmp_path, "locked")
+    with TrialLock(trial_dir):  # another run holds the trial
+        assert launch(tmp_path, "locked", f"resume={trial_dir / 'ckpts' / 'last.ckpt'}") == 2
+    line = last_error_line(capsys)
+    assert "in use by another run" in line and str(trial_dir) in line, line
+    assert len(list((trial_dir / "csv_logs").iterdir())) == 1  # no second log was started
+
+
+def test_resume_with_a_changed_config_says_what_changed_and_refuses_what_breaks_it(reference, tmp_path, capsys, caplog):
+    trial_dir = _copy_trial(reference, tmp_path, "changed")
+    ckpt = trial_dir / "ckpts" / "last.ckpt"
+    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.iterations_per_cycle=2") == 2
+    line = last_error_line(capsys)
+    assert "system.refine.iterations_per_cycle: 4 -> 2" in line and str(ckpt) in line, line
+    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.prompt=something else") == 2
+    assert "system.prompt" in last_error_line(capsys)
+    # A change that leaves the checkpoint meaningful: the run goes on and says what changed.
+    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.eval.max_test_views=1") == 0
+    said = [r.getMessage() for r in caplog.records if "config differs from the checkpoint" in r.getMessage()]
+    assert said and "system.eval.max_test_views: 2 -> 1" in said[0], said
+
+
+def test_interrupted_checkpoint_write_keeps_the_previous_file(tmp_path, monkeypatch):
+    path = tmp_path / "ckpts" / "last.ckpt"
+    save_atomic({"state_dict": {"x": torch.ones(3)}}, path)
+    real_save = torch.save
+
+    def dying(obj, f, *a, **k):
+        buf = io.BytesIO()
+        real_save(obj, buf)
+        f.write(buf.getvalue()[:10])
+        raise SimulatedKill()
+
+    monkeypatch.setattr(torch, "save", dying)
+    with pytest.raises(SimulatedKill):
+        save_atomic({"state_dict": {"x": torch.zeros(3)}}, path)
+    monkeypatch.setattr(torch, "save", real_save)
+    assert torch.equal(load_checkpoint_file(path)["state_dict"]["x"], torch.ones(3))
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.ckpt"]  # no temporary left
+
+
+KILL_DURING_CHECKPOINT = textwrap.dedent("""
+    import io, os, signal, sys
+    import torch
+    real_save, calls = torch.save, [0]
+
+    def save(obj, f, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 3 and not isinstance(f, io.BytesIO):  # the third checkpoint (step 4): half, then kill -9
+            buf = io.BytesIO()
+            real_save(obj, buf)
+            f.write(buf.getvalue()[: len(buf.getvalue()) // 2])
+            f.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real_save(obj, f, *args, **kwargs)
+
+    torch.save = save
+    from gs_regional.launch import main
+    sys.exit(main(sys.argv[1:]))
+""")
+
+
+def test_kill_9_while_writing_a_checkpoint_loses_nothing(reference, tmp_path):
+    """A real SIGKILL in the middle of writing last.ckpt: the previous checkpoint (after
+    initialization) stays complete and the resumed run ends as the uninterrupted one."""
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run(
+        [sys.executable, "-c", KILL_DURING_CHECKPOINT, "--config", DEMO, "--train", f"exp_root_dir={out}",
+         "name=killed", *TINY], capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    ckpt = trial(out, "killed") / "ckpts" / "last.ckpt"
+    state = load_checkpoint_file(ckpt)  # complete: the checkpoint written before the kill
+    assert state["gs_regional"]["extra"]["phase"] == "refine" and state["global_step"] == 0
+    assert launch(out, "killed", f"resume={ckpt}") == 0
+    same_outputs(trial(out, "killed"), reference["trial"])
+
+
+# ------------------------------------------------------------------ kill and resume at each stage boundary
+def _kill_in(monkeypatch, cls, method, when=lambda *a, **k: True):
+    real = getattr(cls, method)
+
+    def dying(self, *args, **kwargs):
+        if when(*args, **kwargs):
+            raise SimulatedKill()
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(cls, method, dying)
+
+
+def _at_cycle(n):
+    return lambda cycle, *a, **k: cycle == n
+
+
+# (boundary passed, where the kill lands, the checkpoint the resume starts from: phase, step)
+KILLS = [
+    ("localize", ("RegionalEdit", "run_initialize", None), ("initialize", 0)),
+    ("initialize", ("RegionalEdit", "edit_cycle_views", _at_cycle(0)), ("refine", 0)),
+    ("refine cycle 1", ("RegionalEdit", "edit_cycle_views", _at_cycle(1)), ("refine", 4)),
+    ("refine cycle 2", ("RegionalEdit", "edit_cycle_views", _at_cycle(2)), ("refine", 8)),
+    ("output", ("EditSystemBase", "save_video", None), ("refine", 8)),
+]
+
+
+@pytest.mark.parametrize("boundary,kill,resumes_from", KILLS, ids=[k[0] for k in KILLS])
+def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kill, resumes_from, reference,
+                                                                   tmp_path, monkeypatch):
+    from gs_regional.systems import edit_base, regional_edit
+
+    owner = {"RegionalEdit": regional_edit.RegionalEdit, "EditSystemBase": edit_base.EditSystemBase}[kill[0]]
+    with monkeypatch.context() as m:
+        _kill_in(m, owner, kill[1], *([kill[2]] if kill[2] else []))
+        with pytest.raises(SimulatedKill):
+            launch(tmp_path, "killed")
+    ckpt = trial(tmp_path, "killed") / "ckpts" / "last.ckpt"
+    state = load_checkpoint_file(ckpt)
+    assert (state["gs_regional"]["extra"]["phase"], state["global_step"]) == resumes_from
+    assert launch(tmp_path, "killed", f"resume={ckpt}") == 0
+    same_outputs(trial(tmp_path, "killed"), reference["trial"])  # counters of the whole run included
