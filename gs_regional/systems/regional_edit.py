@@ -141,11 +141,11 @@ class RegionalEdit(EditSystemBase):
              "non-increasing (each cycle starts from less noise than the one before, e.g. [750, 500, 250])", t)
 
     def check_scene(self) -> None:
-        super().check_scene()
         n = len(self.scene.train_indices)
         if self.cfg.refine.m >= n - 1:
             log.warning("system.refine.m=%d: the scene has %d training views, so every cycle edits all of them",
                         self.cfg.refine.m, n)
+        super().check_scene()
 
     @property
     def total_steps(self) -> int:
