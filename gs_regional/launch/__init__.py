@@ -4,13 +4,15 @@
 
 1. import every module and package under `custom/` (plugins register components)   plugins.py
 2. read the YAML, apply the overrides                                                run.py
-3. seed, build the datamodule (`data_type`) and the system (`system_type`), and read
-   the scene: bad config or input files stop here, before any trial dir exists      run.py
+3. seed, read the scene (`data_type`), check the system's input files and settings,
+   load and compare a `resume=` checkpoint, then build the system (`system_type`)
+   with its priors: bad config, input files or checkpoints stop here, before any
+   trial dir exists and before any model is loaded                                  run.py, checkpoints.py
 4. make the trial directory `<exp_root_dir>/<name>/<tag>@<timestamp>` (or reuse the
-   one of a `resume=<trial>/ckpts/last.ckpt`) with configs/parsed.yaml,
-   configs/raw.yaml and cmd.txt                                                      trial.py
-5. run a Lightning Trainer (last.ckpt in ckpts/, CSV logs in csv_logs/, one progress
-   bar named after the system's stage)                                               callbacks.py
+   one of a `resume=<trial>/ckpts/last.ckpt`), locked against a second writer, with
+   configs/parsed.yaml, configs/raw.yaml and cmd.txt                                 trial.py
+5. run a Lightning Trainer (last.ckpt in ckpts/, written atomically, the previous one
+   kept; CSV logs in csv_logs/; one progress bar named after the system's stage)     callbacks.py, checkpoints.py
 6. print a summary: what ran, seconds per stage, Gaussians, key metrics, output paths summary.py
 
 The console is quiet by default (`--verbose` shows everything; logs.py). Mistakes in the config,

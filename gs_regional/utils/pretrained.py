@@ -104,16 +104,16 @@ def locate_hub_model(what: str, pretrained: str, local_files_only: bool, key: st
            f"(huggingface-cli download {pretrained})")
     if local_files_only or _hub_offline():
         raise PretrainedLoadError(
-            f"{what}: '{pretrained}' is not a local folder and not in the Hugging Face cache, and offline mode is on "
-            f"(HF_HUB_OFFLINE or local_files_only); {how}"
+            f"{what}: '{pretrained}' is not a local folder, so it was looked up as a Hugging Face hub id: it is not in "
+            f"the local cache and offline mode is on (HF_HUB_OFFLINE or local_files_only); {how}"
         )
     try:
         probe_hub(pretrained)
     except Exception as e:  # noqa: BLE001 - unreachable hub, unknown repo, refused access
         reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
         raise PretrainedLoadError(
-            f"{what}: '{pretrained}' is not a local folder and not in the Hugging Face cache, and the hub "
-            f"did not answer ({type(e).__name__}: {reason}); {how}"
+            f"{what}: '{pretrained}' is not a local folder, so it was looked up as a Hugging Face hub id: it is not in "
+            f"the local cache and the hub did not answer ({type(e).__name__}: {reason}); {how}"
         ) from None
     return False
 
