@@ -203,14 +203,16 @@ class Reconstruct(GaussianSystem):
         return metrics
 
     def on_train_end(self) -> None:
-        self.evaluate_and_save()
+        # The fit's time, frozen before the evaluation: the final checkpoint is written after it.
+        self.fit_seconds = self.elapsed()
+        self.evaluate_and_save(seconds=self.fit_seconds)
 
     def on_export(self) -> None:
         self.evaluate_and_save(seconds=self.seconds_before)  # the fit's time, not the export's
 
     # ----- checkpoints ---------------------------------------------------------------------------
     def extra_state(self) -> dict:
-        return {"seconds": self.elapsed(), "steps": int(self.global_step), "initial_count": self.initial_count}
+        return {"seconds": getattr(self, "fit_seconds", None) or self.elapsed(), "steps": int(self.global_step), "initial_count": self.initial_count}
 
     def load_extra_state(self, state: dict) -> None:
         self.seconds_before = float(state.get("seconds", 0.0))
