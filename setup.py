@@ -25,6 +25,8 @@ setup(
         "lpips": ["lpips>=0.1.4"],
         # `launch.py --view`: viser serves the web viewer (Gaussian splat scene node, GUI panel)
         "viewer": ["viser>=1.1"],
-        "test": ["pytest>=7"],
+        # .spz export (Niantic) through gsply (numpy, numba and a bundled C++ codec); the tests read and write .spz
+        "spz": ["gsply>=0.4.6"],
+        "test": ["pytest>=7", "gsply>=0.4.6"],
     },
 )

@@ -255,17 +255,47 @@ def test_gamma_zero_is_a_global_edit(tmp_path, capsys):
     assert "a global edit" in capsys.readouterr().err
 
 
-def test_export_writes_the_checkpointed_scene(runs, capsys):
+def test_run_writes_the_viewer_formats(runs):
+    """Every edit run writes edited.splat and edited.compressed.ply beside edited.ply (issue 14):
+    the same Gaussians, read back by gs_regional.geometry.formats."""
+    from gs_regional.geometry.formats import read_scene
+
+    save = Path(get_run(runs, "regional")) / "save"
+    n = len(ply_arrays(save / "edited.ply")["x"])
+    sizes = metrics_of(save.parent)["export_bytes"]
+    assert sizes == {"edited.splat": 32 * n, "edited.compressed.ply": (save / "edited.compressed.ply").stat().st_size}
+    for name in sizes:
+        assert read_scene(save / name).num_gaussians == n
+    assert not list(save.glob("edited_region*"))  # only with --export region
+
+
+def test_export_writes_the_checkpointed_scene_and_its_region(runs, capsys):
+    """`--export region` on a checkpoint: the scene as in edited.ply, its viewer formats, and the
+    edited region alone (the rows the edit selected or added, per the checkpoint's row state)."""
+    from gs_regional.geometry.formats import read_scene
+
     trial = get_run(runs, "regional")
     ckpt = os.path.join(trial, "ckpts", "last.ckpt")
-    argv = ["--config", str(ROOT / "configs/demo.yaml"), "--export", f"exp_root_dir={runs['tmp']}", "name=regional",
-            *SMALL, f"resume={ckpt}"]
+    argv = ["--config", str(ROOT / "configs/demo.yaml"), "--export", "region", f"exp_root_dir={runs['tmp']}",
+            "name=regional", *SMALL, f"resume={ckpt}"]
     assert main(argv) == 0
-    exported = glob.glob(os.path.join(trial, "save", "export_step*.ply"))
+    save = Path(trial) / "save"
+    exported = glob.glob(str(save / "export_step*[0-9].ply"))
     assert len(exported) == 1
-    a, b = ply_arrays(exported[0]), ply_arrays(Path(trial) / "save" / "edited.ply")
+    a, b = ply_arrays(exported[0]), ply_arrays(save / "edited.ply")
     for k in b:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    stem = exported[0][: -len(".ply")]
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    region = (state["geometry.mask"] | (state["geometry.generation"] > 0)).numpy()
+    assert 0 < region.sum() < len(region)
+    r = ply_arrays(f"{stem}_region.ply")
+    for k in b:
+        np.testing.assert_array_equal(r[k], b[k][region], err_msg=k)
+    for suffix in (".splat", ".compressed.ply"):
+        assert read_scene(stem + suffix).num_gaussians == len(region)
+        assert read_scene(f"{stem}_region{suffix}").num_gaussians == region.sum()
+    assert "edited region" in capsys.readouterr().out  # the summary points at the region files
 
 
 @pytest.mark.parametrize("override", ["system.guidance.edit=add", "system.depth.scene_seed=0", "system.depth.n_object=6000"])

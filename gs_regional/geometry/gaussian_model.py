@@ -226,9 +226,20 @@ class GaussianModel(BaseModule):
         model.load_ply(path, drop_nonfinite=drop_nonfinite)
         return model
 
+    @classmethod
+    def from_gaussians(cls, g: PlyGaussians) -> "GaussianModel":
+        """A model holding the Gaussians of `g` (e.g. a scene read back by geometry.formats)."""
+        model = cls({"sh_degree": 0}, n=0)
+        model.load_gaussians(g)
+        return model
+
     def load_ply(self, path, drop_nonfinite: bool = False) -> None:
         """Replace this model's Gaussians by those of a PLY (the file's SH degree wins)."""
-        g = read_ply(path, drop_nonfinite=drop_nonfinite)
+        self.load_gaussians(read_ply(path, drop_nonfinite=drop_nonfinite))
+        self.source_path = os.path.abspath(os.fspath(path))
+
+    def load_gaussians(self, g: PlyGaussians) -> None:
+        """Replace this model's Gaussians by those of `g` (its SH degree wins)."""
         extras = dict(g.extras)
         if g.normals is not None:  # non-zero normals are kept and written back in place
             for i, name in enumerate(("nx", "ny", "nz")):
@@ -251,7 +262,6 @@ class GaussianModel(BaseModule):
             },
             extras=extra_t,
         )
-        self.source_path = os.path.abspath(os.fspath(path))
 
     def to_ply_gaussians(self) -> PlyGaussians:
         """The model as numpy arrays in the PLY layout (extras cast back to their file types)."""

@@ -10,6 +10,12 @@ from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import setup_logging
 
 MODES = ("train", "validate", "test", "export")
+EXPORT_CHOICES = ("scene", "region")
+
+
+def run_mode(args: argparse.Namespace) -> str:
+    """The mode of parsed arguments: --train, --validate or --test, else --export."""
+    return next(m for m in MODES if getattr(args, m))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,15 +26,18 @@ def build_parser() -> argparse.ArgumentParser:
                "(needs the 'viewer' extra; --view --help lists its options)",
     )
     p.add_argument("--config", required=True, help="YAML experiment config")
-    mode = p.add_mutually_exclusive_group(required=True)
+    mode = p.add_mutually_exclusive_group()
     helps = {
         "train": "train (resume=<ckpt> continues a run)",
         "validate": "run the validation loop (on resume=<ckpt>)",
         "test": "run the test loop (on resume=<ckpt>)",
-        "export": "load resume=<ckpt> and call the system's on_export()",
     }
-    for m in MODES:
+    for m in MODES[:-1]:
         mode.add_argument(f"--{m}", action="store_true", help=helps[m])
+    # --export alone is a mode; `--train --export region` trains and also writes the region's files.
+    p.add_argument("--export", nargs="?", const="scene", choices=EXPORT_CHOICES, default=None,
+                   help="alone: load resume=<ckpt> and call the system's on_export(); 'region' also writes "
+                        "the edited region's Gaussians alone (system.export.region=true), with --export or --train")
     p.add_argument("--gpu", default=None, help="CUDA device index (e.g. 0); without it the run uses the CPU")
     p.add_argument("--custom-dir", default=None, help="plugin folder (default: custom/ beside launch.py)")
     p.add_argument("--verbose", action="store_true",
@@ -54,6 +63,14 @@ def main(argv: Optional[Sequence[str]] = None, custom_dir: Any = None) -> int:
         args, extra = parser.parse_known_args(argv)
     except SystemExit as e:  # argparse already printed the usage and the error
         return int(e.code or 0)
+    if not any(getattr(args, m) for m in MODES):
+        parser.print_usage(sys.stderr)
+        sys.stderr.write("error: one of the arguments --train --validate --test --export is required\n")
+        return 2
+    if args.export is not None and (args.validate or args.test):
+        parser.print_usage(sys.stderr)
+        sys.stderr.write("error: --export goes alone or with --train\n")
+        return 2
     bad = [x for x in extra if "=" not in x]
     if bad:
         parser.print_usage(sys.stderr)

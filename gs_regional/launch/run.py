@@ -17,7 +17,7 @@ from lightning.pytorch.loggers import CSVLogger
 
 from gs_regional.config import ConfigError, load_config
 from gs_regional.launch.checkpoints import CONFIG_KEY, TrialCheckpointIO, check_resume_config, load_checkpoint_file
-from gs_regional.launch.cli import MODES
+from gs_regional.launch.cli import run_mode
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import filter_warnings
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
@@ -114,7 +114,9 @@ def checkpoint_settings(cfg: Any) -> Dict[str, Any]:
 def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None) -> int:
     started, started_at = time.perf_counter(), time.time()
     verbose = bool(args.verbose or args.debug)
-    mode = next(m for m in MODES if getattr(args, m))
+    mode = run_mode(args)
+    if args.export == "region":
+        overrides = [*overrides, "system.export.region=true"]
     # Built-ins first, so that a plugin reusing a built-in name fails in its own import.
     load_builtins()
     load_plugins(args.custom_dir or custom_dir or default_custom_dir(), debug=args.debug)

@@ -17,7 +17,10 @@ log = logging.getLogger(__name__)
 OUTPUTS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
     ("edited scene", ("edited.ply",)),
     ("fitted scene", ("reconstructed.ply",)),
-    ("exported scene", ("export_step*.ply",)),
+    ("exported scene", ("export_step*[0-9].ply",)),
+    ("for web viewers", ("edited.splat", "export_step*[0-9].splat")),
+    ("compressed PLY", ("edited.compressed.ply", "export_step*[0-9].compressed.ply")),
+    ("edited region", ("edited_region.ply", "export_step*[0-9]_region.ply")),
     ("before/after", ("before_after.png",)),
     ("test views", ("test_views.png",)),
     ("turntable", ("turntable.mp4", "turntable.gif")),

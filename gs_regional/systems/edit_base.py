@@ -14,6 +14,7 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
+from gs_regional.geometry.formats import ExportConfig, export_scene
 from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
@@ -58,6 +59,7 @@ class EditSystemBase(GaussianSystem):
         lambda_l1: float = 1.0
         lambda_lpips: float = 0.0  # needs the `lpips` extra
         eval: EvalConfig = field(default_factory=EvalConfig)
+        export: ExportConfig = field(default_factory=ExportConfig)  # viewer formats beside the PLY
 
     @classmethod
     def check_inputs(cls, section) -> None:
@@ -96,6 +98,7 @@ class EditSystemBase(GaussianSystem):
             raise ConfigError("system.prompt is empty: say what to change, e.g. system.prompt=\"give him a mustache\"")
         # Built in setup(), for the device the trainer places the module on; checked now.
         check_renderer_config(cfg.renderer_type, cfg.renderer)
+        cfg.export.check()
         self._source_renders: Optional[List[torch.Tensor]] = None
         # The 2D editor is not an nn.Module of the system: its weights never enter checkpoints.
         self.guidance = find(cfg.guidance_type, kind="guidance", key="system.guidance_type")(cfg.guidance)
@@ -275,10 +278,28 @@ class EditSystemBase(GaussianSystem):
         return cache[index]
 
     def on_export(self) -> None:
-        """`launch.py --export resume=<ckpt>`: write the scene of that checkpoint as a PLY."""
+        """`launch.py --export resume=<ckpt>`: write the scene of that checkpoint as a PLY and the
+        formats of `system.export` (`--export region`: the edited region too)."""
         path = self.save_path(f"export_step{self.global_step}.ply")
         self.geometry.save_ply(str(path))
         log.info("export: %d Gaussians written to %s", self.geometry.num_gaussians, path)
+        self.write_formats(f"export_step{self.global_step}")
+
+    def write_formats(self, stem: str) -> Dict[str, int]:
+        """Beside save/<stem>.ply (already written): the viewer formats of `system.export`, and with
+        `export.region` the edited region alone (the selected and the added Gaussians) as
+        save/<stem>_region.ply and the same formats. Returns {file name: bytes}."""
+        cfg = self.cfg.export
+        paths = export_scene(self.geometry.to_ply_gaussians(), self.save_dir / stem, cfg.formats())
+        if cfg.region:
+            region = self.geometry.editable_rows()
+            if bool(region.any()):
+                paths += export_scene(self.geometry.select(region).to_ply_gaussians(), self.save_dir / f"{stem}_region",
+                                      ["ply", *cfg.formats()])
+                log.info("export: the edited region, %d Gaussians, written to %s_region.*", int(region.sum()), stem)
+            else:
+                self.warn("export.region: the edit selected and added no Gaussians, so no region files were written")
+        return {p.name: p.stat().st_size for p in paths}
 
     @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
@@ -290,6 +311,7 @@ class EditSystemBase(GaussianSystem):
         g = self.geometry
         np.savez_compressed(self.save_dir / "edit_mask.npz", mask=g.mask.cpu().numpy(),
                             generation=g.generation.cpu().numpy(), source_index=g.source_index.cpu().numpy())
+        export_bytes = self.write_formats("edited")
         scene = self.scene
         views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]
         after = {i: self.render_view(i)["rgb"].clamp(0, 1) for i in views}
@@ -336,6 +358,7 @@ class EditSystemBase(GaussianSystem):
             )
             metrics["clip_image_similarity"] = clip.image_similarity(src, edi)
         metrics.update(self.size_metrics())
+        metrics["export_bytes"] = export_bytes
         metrics.update(extra_metrics or {})
 
         path_views = order_by_azimuth(scene.cameras, scene.train_indices or scene.test_indices)
