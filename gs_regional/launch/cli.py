@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any, Optional, Sequence
+from typing import Any, List, Optional, Sequence
 
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import setup_logging
@@ -46,6 +46,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _explicit_export(argv: Sequence[str]) -> List[str]:
+    """A bare `--export` made `--export=scene`, so that argparse never takes the `key=value` after
+    it as the optional word (`--export region`)."""
+    return [
+        "--export=scene" if tok == "--export" and (i + 1 == len(argv) or argv[i + 1] not in EXPORT_CHOICES) else tok
+        for i, tok in enumerate(argv)
+    ]
+
+
 def main(argv: Optional[Sequence[str]] = None, custom_dir: Any = None) -> int:
     """Run launch.py with `argv` (default: sys.argv[1:]); returns the exit code.
 
@@ -60,7 +69,7 @@ def main(argv: Optional[Sequence[str]] = None, custom_dir: Any = None) -> int:
         return view_main(argv, custom_dir)
     parser = build_parser()
     try:
-        args, extra = parser.parse_known_args(argv)
+        args, extra = parser.parse_known_args(_explicit_export(argv))
     except SystemExit as e:  # argparse already printed the usage and the error
         return int(e.code or 0)
     if not any(getattr(args, m) for m in MODES):
