@@ -101,14 +101,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="folder for pareto.json, the PNGs and the runs")
     ap.add_argument("--edits", nargs="+", default=None,
                     help="which edits (default: add for --quick, else recolor add global donut_recolor donut_add)")
+    ap.add_argument("--replot", action="store_true", help="no runs: redraw the charts and the table from OUT/pareto.json")
     args = ap.parse_args(argv)
     edits = args.edits or (["add"] if args.quick else ["recolor", "add", "global", "donut_recolor", "donut_add"])
     unknown = [e for e in edits if e not in sweeps.EDITS]
     if unknown:
         ap.error(f"unknown edit(s) {unknown}; known: {', '.join(sweeps.EDITS)}")
-    runs = plan(args.quick, edits)
     header = {"quick": args.quick, "scene": sweeps.scene_overrides(args.quick)}
-    records = sweeps.run_all(runs, args.quick, args.out, "pareto.json", header)
+    if args.replot:
+        records = sweeps.read_records(os.path.join(args.out, "pareto.json"), args.quick)
+    else:
+        records = sweeps.run_all(plan(args.quick, edits), args.quick, args.out, "pareto.json", header)
     for edit in dict.fromkeys(r["edit"] for r in records):
         chart(records, edit, os.path.join(args.out, f"pareto_{edit}.png"))
     print("\n| edit | method | settings | edit s | UNet evals | in-region PSNR (doing nothing) | unedited PSNR | Gaussians added |")

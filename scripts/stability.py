@@ -103,8 +103,9 @@ def series(records: List[dict], mode: str, method: str, quick: bool) -> Optional
     if kind not in USES[method]:
         return [base] * len(steps)
     by_label = {r["severity"]: r for r in records if r["method"] == method and r["mode"] == mode}
-    out = [base if i == default else by_label.get(label) for i, (label, _) in enumerate(steps)]
-    return out if any(r is not base for r in out) else None
+    if not by_label:  # affected, but not run under this mode
+        return None
+    return [base if i == default else by_label.get(label) for i, (label, _) in enumerate(steps)]
 
 
 def breaks(records: List[dict], quick: bool) -> Dict[str, Dict[str, str]]:
@@ -205,10 +206,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="a few runs at small budgets (the test's mode)")
     ap.add_argument("--out", required=True, help="folder for stability.json, the PNGs and the runs")
+    ap.add_argument("--replot", action="store_true", help="no runs: redraw the charts and the table from OUT/stability.json")
     args = ap.parse_args(argv)
-    runs = plan(args.quick)
     header = {"quick": args.quick, "scene": sweeps.scene_overrides(args.quick)}
-    records = sweeps.run_all(runs, args.quick, args.out, "stability.json", header)
+    if args.replot:
+        records = sweeps.read_records(os.path.join(args.out, "stability.json"), args.quick)
+    else:
+        records = sweeps.run_all(plan(args.quick), args.quick, args.out, "stability.json", header)
     table = breaks(records, args.quick)
     sweeps.write_json(os.path.join(args.out, "stability.json"), {**header, "breaks": table, "records": records})
     chart(records, args.quick, "psnr_region_vs_true_edit", "in-region PSNR vs true edit (dB)",

@@ -156,6 +156,15 @@ def run_all(runs: Sequence[Run], quick: bool, out: str, json_name: str, header: 
     return records
 
 
+def read_records(path: str, quick: bool) -> List[dict]:
+    """The records of a sweep's JSON (--replot), checked to be of the same mode."""
+    with open(path) as f:
+        payload = json.load(f)
+    if payload.get("quick") != quick:
+        raise SystemExit(f"{path} was written {'with' if payload.get('quick') else 'without'} --quick; replot it the same way")
+    return payload["records"]
+
+
 def write_json(path: str, payload: dict) -> None:
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
