@@ -32,7 +32,9 @@ def test_stability_quick_writes_records_table_and_charts(tmp_path):
     assert records["add/regional-edit/leakage=1.5"]["mask_iou"] < records["add/regional-edit/leakage=0"]["mask_iou"]
     # the table: in2n has no relevance, so leakage does not affect it
     assert payload["breaks"]["leakage"]["in2n"].startswith("not affected")
-    assert payload["breaks"]["leakage"]["regional-edit"] in ("holds", "0", "0.35", "1.5")
+    # the regional edit stays above doing nothing + 1 dB at every leakage (by ~1.5 dB at these
+    # budgets; deterministic seeds, the margin covers float differences between CPUs)
+    assert payload["breaks"]["leakage"]["regional-edit"] == "holds"
     for name in ("stability_region.png", "stability_unedited.png"):
         png = tmp_path / name
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5_000
