@@ -2,8 +2,8 @@
 (scripts/bench_edit.py's `run`: a full launch.py run read back from its save/metrics.json) turned
 into one flat record, the JSON they write, and chart helpers.
 
-Every run of a sweep uses the same small scene (`scene_overrides`): 24 cameras at 64² (quick: 16 at
-48²), two turntable frames (they do not enter the metrics) and no checkpoints, so a full sweep of
+Runs use a smaller scene than the demo (`scene_overrides`): 24 cameras at 64² (quick: 16 at
+48²; `Run.demo_scene` keeps the demo's 40 at 96²), two turntable frames (they do not enter the metrics) and no checkpoints, so a full sweep of
 about a hundred runs fits in 30 minutes of this 2-core CPU. The simulated editor and depth stand
 in for the real priors (see the README's "The simulated editor").
 """
@@ -47,9 +47,10 @@ METHOD_COLORS = {
 }
 
 
-def scene_overrides(quick: bool) -> List[str]:
-    """The sweeps' scene size and output settings (the same for every edit and method)."""
-    size = ["data.n_cameras=16", "data.width=48", "data.height=48"] if quick else \
+def scene_overrides(quick: bool, demo_scene: bool = False) -> List[str]:
+    """The sweeps' scene size and output settings; `demo_scene` keeps the config's own cameras
+    (the demo's 40 at 96²)."""
+    size = [] if demo_scene else ["data.n_cameras=16", "data.width=48", "data.height=48"] if quick else \
         ["data.n_cameras=24", "data.width=64", "data.height=64"]
     return size + ["system.eval.turntable_frames=2", "checkpoint.every_n_train_steps=1000000"]
 
@@ -80,6 +81,7 @@ class Run:
     label: str
     overrides: List[str] = field(default_factory=list)
     info: Dict[str, object] = field(default_factory=dict)  # copied into the record (e.g. severity)
+    demo_scene: bool = False  # the config's own cameras instead of the sweeps' smaller scene
 
     @property
     def key(self) -> str:
@@ -96,7 +98,7 @@ class Run:
         if self.method == "in2n" and self.edit.startswith("donut"):
             # in2n on the splat truth: the data section of the donut config (the system is in2n's)
             edit_overrides = donut_data_for_in2n(self.edit)
-        return edit_overrides + scene_overrides(quick) + list(self.overrides)
+        return edit_overrides + scene_overrides(quick, self.demo_scene) + list(self.overrides)
 
 
 def donut_data_for_in2n(edit: str) -> List[str]:
