@@ -20,7 +20,7 @@ relevance and no depth, no-depth-init no depth) is not re-run: its default run i
 the table says "not affected". (The other ablations are in scripts/pareto.py; running them under
 every mode would not fit the 30 minutes.)
 
-Full (the default; 77 runs, about 30 min on this 2-core CPU): 10 modes x 5 severities, 24 cameras at
+Full (the default; 78 runs, 17-30 min on this 2-core CPU): 10 modes x 5 severities, 24 cameras at
 64², except the depth modes: on the demo's 40 cameras at 96² (at 64² the moustache is too thin for
 the simulated depth to see it in the first edited view, so initialization adds next to nothing).
 --quick (a test runs it; about 40 s): `leakage` at 3 severities for the regional edit at 1x10,
