@@ -6,7 +6,7 @@ import torch
 from gs_regional.data.cameras import Camera
 from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, unproject
 from gs_regional.edit.localize import expand_selection
-from gs_regional.edit.views import camera_path, nearest_cameras, order_by_azimuth, spread_subset
+from gs_regional.edit.views import camera_path, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.sh import sh_to_rgb
 
@@ -37,6 +37,25 @@ def test_spread_subset_and_nearest():
     near = nearest_cameras(cams, 5, 4, range(12))
     assert 5 not in near and set(near) == {3, 4, 6, 7}
     assert near[0] in (4, 6) and near[-1] in (3, 7)
+
+
+def test_frontier_cycles_cover_more_views_than_random_ones():
+    """On a ring of 24 cameras, 3 cycles of (frontal + its 4 nearest) edited views: starting each
+    later cycle at the frontier of the edited views covers 9 views, the paper's random edited
+    view at most that and, on average over seeds, clearly fewer."""
+    cams, among = ring(24), list(range(24))
+
+    def covered(choose):
+        edited = sorted({11, *nearest_cameras(cams, 11, 4, among)})
+        for cycle in (1, 2):
+            v = choose(edited, torch.Generator().manual_seed(cycle))
+            edited = sorted(set(edited) | {v, *nearest_cameras(cams, v, 4, among)})
+        return len(edited)
+
+    assert covered(lambda edited, gen: frontier_view(cams, edited, 4, among, gen)) == 9
+    randoms = [covered(lambda edited, gen: edited[int(torch.randint(len(edited), (1,), generator=gen.manual_seed(s)))])
+               for s in range(20)]
+    assert max(randoms) <= 9 and sum(randoms) / len(randoms) < 8
 
 
 def test_camera_path_passes_through_keyframes_and_azimuth_order():

@@ -69,16 +69,29 @@ def test_a_corrupted_depth_is_rejected():
     assert report["calibration_residual"] > 0.05 and "fits the rendered depth poorly" in report["rejected"]
 
 
-def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_path, caplog):
+def tiny_run(tmp_path, name, *overrides):
     argv = [
-        "--config", str(ROOT / "configs/demo.yaml"), "--train", f"exp_root_dir={tmp_path}", "name=corrupt",
-        "system.depth.corruption=20", "data.n_cameras=24", "data.width=64", "data.height=64",
+        "--config", str(ROOT / "configs/demo.yaml"), "--train", f"exp_root_dir={tmp_path}", f"name={name}",
+        "data.n_cameras=24", "data.width=64", "data.height=64",
         "system.eval.turntable_frames=2", "system.eval.max_test_views=2", "trainer.enable_progress_bar=false",
         "system.localization.max_views=8", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
-        "system.densify.every=3",
+        "system.densify.every=3", *overrides,
     ]
     assert main(argv) == 0
-    m = metrics_of(trial_of(tmp_path, "corrupt"))
+    return metrics_of(trial_of(tmp_path, name))
+
+
+def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
+    """A trusted calibration that finds no change of shape: refinement recolours the Gaussians
+    there are and densifies none (the true recolour adds none; it used to densify hundreds)."""
+    m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
+    assert "rejected" not in m["init"] and m["count_added_init"] == 0
+    assert m["gaussians_added"] == 0 == m["true_gaussians_added"] and m["gaussians_after"] == m["gaussians_before"]
+    assert m["warnings"] == []
+
+
+def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_path, caplog):
+    m = tiny_run(tmp_path, "corrupt", "system.depth.corruption=20")
     assert m["count_added_init"] == 0 and m["count_densified"] > 0
     assert m["init"]["calibration_residual"] > 0.05 and m["init"]["calibration_pixels"] > 0
     assert len(m["warnings"]) == 1 and "depth calibration rejected" in m["warnings"][0]

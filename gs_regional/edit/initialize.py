@@ -83,6 +83,12 @@ def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: 
     return within_radius(points, region_means, radius)
 
 
+def calibration_pixels(alpha_3dgs: torch.Tensor, region: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """(H, W) bool: the pixels the monocular depth is calibrated on: rendered opaque enough to
+    have a 3DGS depth and away from the (dilated) region, where the edit changes nothing."""
+    return (alpha_3dgs > cfg.alpha_min) & ~dilate(region, cfg.dilate_px)
+
+
 def _rejected(report: dict, reason: str) -> tuple:
     """The answer of `new_gaussians_from_depth` when the calibration is rejected: nothing added."""
     report.update(rejected=reason, added=0)
@@ -108,8 +114,8 @@ def new_gaussians_from_depth(
     Gaussians are returned and `report["rejected"]` says why; `d_new` is then None."""
     device = edited.device
     valid = alpha_3dgs > cfg.alpha_min
+    calib_px = calibration_pixels(alpha_3dgs, region, cfg)
     region = dilate(region, cfg.dilate_px)
-    calib_px = valid & ~region
     report = {"calibration_pixels": int(calib_px.sum())}
     if report["calibration_pixels"] < max(cfg.min_calibration_pixels, 16):
         return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region have a "
@@ -147,6 +153,9 @@ def new_gaussians_from_depth(
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
     depth_changed = relative_change > threshold
+    # A change of shape covers a patch; isolated pixels beyond the threshold are the depth's noise
+    # (outliers): keep only pixels of a 3 x 3 patch that changed everywhere (a morphological opening).
+    depth_changed = dilate(~dilate(~depth_changed, 1), 1) & depth_changed
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True

@@ -29,6 +29,18 @@ def nearest_cameras(cameras: Sequence[Camera], center_index: int, m: int, among:
     return [others[j] for j in order[:m]]
 
 
+def frontier_view(cameras: Sequence[Camera], edited: Sequence[int], m: int, among: Sequence[int],
+                  generator: torch.Generator = None) -> int:
+    """The edited view whose `m` nearest cameras of `among` include the most views not edited yet:
+    the next cycle starts at the edge of what is edited and carries the edit outwards, so that
+    `cycles` x `m` edits cover as many views as they can (ties: a random one of them, with
+    `generator`; all tied once every view is edited)."""
+    done = set(edited)
+    fresh = torch.tensor([sum(j not in done for j in nearest_cameras(cameras, v, m, among)) for v in edited])
+    best = (fresh == fresh.max()).nonzero().squeeze(1)
+    return list(edited)[int(best[torch.randint(len(best), (1,), generator=generator)])]
+
+
 def _slerp(q0: torch.Tensor, q1: torch.Tensor, t: float) -> torch.Tensor:
     dot = float((q0 * q1).sum())
     if dot < 0:

@@ -48,11 +48,16 @@ class DensifyStrategy:
     # Densify, prune and reset only Gaussians whose gradients pass (GaussianModel.trainable_rows():
     # the edit's mask and added Gaussians while the rest is frozen); false: every Gaussian.
     only_trainable: bool = True
+    # Clone and split children get at least this generation (an edit's 1: they count as Gaussians
+    # the edit added, like those from depth, and may be pruned as such); 0: they inherit their parent's.
+    child_generation: int = 0
 
     def check(self, where: str = "densify") -> None:
         """Raise a ConfigError naming the key (`where`.<key>) for impossible settings."""
         if self.every < 1:
             raise ConfigError(f"{where}.every must be >= 1, got {self.every}")
+        if self.child_generation < 0:
+            raise ConfigError(f"{where}.child_generation must be >= 0, got {self.child_generation}")
         if self.opacity_reset_every < 0:
             raise ConfigError(f"{where}.opacity_reset_every must be >= 0 (0: never), got {self.opacity_reset_every}")
         for key in ("max_gaussians", "budget"):
@@ -184,6 +189,8 @@ class DensifyStrategy:
             children = {name: torch.cat([getattr(model, name).detach()[ci], samples[name]]) for name in samples}
         rows.duplicate(model, torch.cat([ci, si, si]), optimizer, **children)
         n1 = model.num_gaussians
+        if self.child_generation > 0:
+            model.generation[n0:] = model.generation[n0:].clamp_min(self.child_generation)
         screen = torch.cat([screen, screen.new_zeros(n1 - n0)])
 
         split_parent = torch.cat([split_sel, torch.zeros(n1 - n0, dtype=torch.bool, device=dev)])

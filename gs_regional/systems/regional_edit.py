@@ -10,9 +10,10 @@ import torch
 
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target
-from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
+from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_agreement, render_selection
-from gs_regional.edit.views import nearest_cameras, spread_subset
+from gs_regional.edit.prune import useless_added
+from gs_regional.edit.views import frontier_view, nearest_cameras, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import mask_metrics
@@ -55,6 +56,11 @@ class RefineConfig:
     constant_t: Optional[int] = None  # ablation: one start timestep for every cycle
     iterations_per_cycle: int = 500
     m: int = 20  # nearest cameras edited around the cycle's frontal view
+    # The frontal view of cycles after the first: "random" (the paper: any edited view) or
+    # "frontier" (the edited view with the most unedited views among its m nearest: the edit
+    # spreads outwards instead of re-editing the same views; views never edited keep the source's
+    # look on the edited part, seen as smears in side views).
+    next_frontal: str = "frontier"
     optimize_all: bool = False  # let gradients reach every Gaussian (the paper's setting)
     # Keep each edited view only where the localized Gaussians render (weighted by how much of the
     # pixel they cover) and the source render elsewhere: the 2D editor's changes outside the region
@@ -66,6 +72,12 @@ class RefineConfig:
     # margin): room for geometry the edit adds. A recolour gets no margin.
     composite_dilate: int = 6
     composite_noise_sigmas: float = 4.0
+    # After the last cycle, Gaussians the edit added (from depth or by densification) that
+    # contribute nothing are removed: total rendered weight over the training views below
+    # `prune_min_weight` (in pixels) or opacity below `prune_min_opacity`.
+    prune_added: bool = True
+    prune_min_weight: float = 0.1
+    prune_min_opacity: float = 0.005
 
 
 @register("regional-edit")
@@ -84,7 +96,8 @@ class RegionalEdit(EditSystemBase):
         # refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
         densify: DensifyStrategy = field(
             default_factory=lambda: DensifyStrategy(
-                start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000
+                start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000,
+                child_generation=1,
             )
         )
 
@@ -125,6 +138,7 @@ class RegionalEdit(EditSystemBase):
         need(r.cycles >= 1, "refine.cycles", "an integer >= 1", r.cycles)
         need(r.iterations_per_cycle >= 1, "refine.iterations_per_cycle", "an integer >= 1", r.iterations_per_cycle)
         need(r.m >= 0, "refine.m", "an integer >= 0 (views edited around each cycle's frontal view)", r.m)
+        need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
         need(0 <= lc.timestep < n_t, "localization.timestep", f"a timestep in [0, {n_t - 1}]", lc.timestep)
         if r.constant_t is not None:
@@ -206,6 +220,10 @@ class RegionalEdit(EditSystemBase):
     def rendered_mask(self, index: int) -> torch.Tensor:
         return render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask) > 0.5
 
+    def source_alpha(self, index: int) -> torch.Tensor:
+        """(H, W) rendered opacity of the source scene at view `index`."""
+        return self.render_view(index, self.source_model)["alpha"]
+
     @torch.no_grad()
     def run_initialize(self) -> None:
         self.set_stage("initialize")
@@ -214,10 +232,21 @@ class RegionalEdit(EditSystemBase):
         views = self.localize_views
         # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
         # editor is most confident about the region, usually a frontal one.
+        regions = [self.rendered_mask(i) for i in views]
         if self.masks2d is not None:
-            areas = self.masks2d.flatten(1).sum(1)
+            regions = [r | m.bool().to(self.device) for r, m in zip(regions, self.masks2d)]
+            areas = self.masks2d.flatten(1).sum(1).float()
         else:
-            areas = torch.stack([self.rendered_mask(i).sum() for i in views])
+            areas = torch.stack([r.sum() for r in regions]).float()
+        if cfg.initialize and not bool(g.mask.all()):
+            # Among the views that leave enough pixels outside the region to calibrate the
+            # monocular depth on (a region that fills the view leaves none), when there are any.
+            calibratable = torch.tensor([
+                int(calibration_pixels(self.source_alpha(i), r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
+                for i, r in zip(views, regions)
+            ], device=areas.device)
+            if bool(calibratable.any()):
+                areas = torch.where(calibratable, areas, torch.full_like(areas, -1.0))
         self.v_first = views[int(torch.argmax(areas))]
         v = self.v_first
         cam = scene.cameras[v]
@@ -231,9 +260,7 @@ class RegionalEdit(EditSystemBase):
             self.counts["added_init"] = 0
         elif cfg.initialize:
             out = self.render_view(v)
-            region = self.rendered_mask(v)
-            if self.masks2d is not None and v in views:
-                region = region | self.masks2d[views.index(v)].bool().to(self.device)
+            region = regions[views.index(v)]
             disp = self.depth_estimator.disparity(torch.stack([unedited, edited.to(self.device)]), cameras=[cam, cam])
             params, report, d_new = new_gaussians_from_depth(
                 cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree,
@@ -263,6 +290,10 @@ class RegionalEdit(EditSystemBase):
             self.counts["added_init"] = 0
         self.edited_views = [v]
         self.refine_start_count = g.num_gaussians
+        self.counts.setdefault("densified", 0)
+        if not self.shape_may_change:
+            log.info("initialize: the depth of view %d shows no change of shape: refinement recolours the region's "
+                     "Gaussians and adds none", v)
         self.set_trainable()
         self.add_time("initialize", time.perf_counter() - t0)
         self.phase = "refine"
@@ -282,7 +313,10 @@ class RegionalEdit(EditSystemBase):
             frontal = self.v_first
         else:
             gen = torch.Generator().manual_seed(cfg.seed * 7919 + cycle)
-            frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
+            if r.next_frontal == "frontier":
+                frontal = frontier_view(scene.cameras, self.edited_views, r.m, scene.train_indices, gen)
+            else:  # the paper's choice
+                frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
         # Every view is edited from a render of the same scene state, so all go to the editor in one
@@ -367,9 +401,11 @@ class RegionalEdit(EditSystemBase):
         # Stateless per-step choice of view, so a resumed run makes the same choices.
         gen = torch.Generator().manual_seed(self.cfg.seed * 104729 + step)
         k = int(torch.randint(len(self.cycle_views), (1,), generator=gen))
-        densify = self.cfg.densify
+        # A trusted depth initialization that found no change of shape (a recolour): the existing
+        # Gaussians are recoloured, none are added.
+        densify = self.cfg.densify if self.shape_may_change else None
         self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify=densify, step=it)
-        rep = densify.refine(
+        rep = None if densify is None else densify.refine(
             self.geometry, it, self.scene.extent, self.optimizers().optimizer,
             last_step=r.iterations_per_cycle - 1, base_count=self.refine_start_count,
         )
@@ -388,9 +424,30 @@ class RegionalEdit(EditSystemBase):
         self.write_outputs({"stopped": reason, **self.localize_metrics})
         return None
 
+    @torch.no_grad()
+    def prune_useless_added(self) -> int:
+        """Remove the Gaussians this edit added that contribute nothing to the training views
+        (RefineConfig.prune_*); returns how many."""
+        r, g = self.cfg.refine, self.geometry
+        if not r.prune_added:
+            return 0
+        cams = [self.scene.cameras[i].to(self.device) for i in self.scene.train_indices]
+        useless = useless_added(g, self.renderer, cams, r.prune_min_weight, r.prune_min_opacity)
+        n = int(useless.sum())
+        if n:
+            rows.keep(g, ~useless, self.optimizers().optimizer)
+        log.info("refine: pruned %d of the %d added Gaussians that contribute nothing", n, int((g.generation > 0).sum()) + n)
+        return n
+
     def on_train_end(self) -> None:
         if self.phase == "done":
             return
+        if self.phase == "refine" and "pruned_added" not in self.counts:
+            t0 = time.perf_counter()
+            n = self.prune_useless_added()
+            self.add_time("prune", time.perf_counter() - t0)
+            self.counts["pruned_added"] = n
+            self.counts["pruned"] = self.counts.get("pruned", 0) + n
         extra = dict(self.localize_metrics) if hasattr(self, "localize_metrics") else {}
         extra["v_first"] = self.v_first
         extra["edited_views"] = len(self.edited_views)

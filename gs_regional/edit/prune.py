@@ -1,0 +1,31 @@
+"""After refinement: the Gaussians an edit added that contribute nothing (issue 11 §4)."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from gs_regional.data.cameras import Camera
+from gs_regional.edit.localize import mask_votes
+
+
+@torch.no_grad()
+def rendered_weight(model, renderer, cameras: Sequence[Camera]) -> torch.Tensor:
+    """(N,) each Gaussian's alpha-compositing weight summed over every pixel of `cameras` (in
+    pixels: 1 = one pixel's full colour). One view at a time, so memory stays O(N)."""
+    total = torch.zeros(model.num_gaussians, device=model.means.device)
+    for cam in cameras:
+        total += mask_votes(model, renderer, [cam], [torch.zeros(cam.height, cam.width)])[1][0]
+    return total
+
+
+@torch.no_grad()
+def useless_added(model, renderer, cameras: Sequence[Camera], min_weight: float, min_opacity: float) -> torch.Tensor:
+    """(N,) bool: Gaussians added by an edit (generation > 0) whose rendered weight over `cameras`
+    is below `min_weight` pixels (hidden inside the object, behind others, outside every view) or
+    whose opacity is below `min_opacity`. Gaussians of the source scene are never flagged."""
+    added = model.generation > 0
+    if not bool(added.any()):
+        return added
+    weak = model.opacities < min_opacity
+    return added & (weak | (rendered_weight(model, renderer, cameras) < min_weight))
