@@ -6,7 +6,6 @@ from typing import Sequence
 import torch
 
 from gs_regional.data.cameras import Camera
-from gs_regional.edit.localize import mask_votes
 
 
 @torch.no_grad()
@@ -15,7 +14,7 @@ def rendered_weight(model, renderer, cameras: Sequence[Camera]) -> torch.Tensor:
     pixels: 1 = one pixel's full colour). One view at a time, so memory stays O(N)."""
     total = torch.zeros(model.num_gaussians, device=model.means.device)
     for cam in cameras:
-        total += mask_votes(model, renderer, [cam], [torch.zeros(cam.height, cam.width)])[1][0]
+        total += renderer.pixel_weights(model, cam).gather(torch.ones(cam.height, cam.width, device=total.device))
     return total
 
 
