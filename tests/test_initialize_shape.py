@@ -84,7 +84,10 @@ def tiny_run(tmp_path, name, *overrides):
 def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     """A trusted calibration that finds no change of shape: refinement recolours the Gaussians
     there are and densifies none (the true recolour adds none; it used to densify hundreds)."""
-    m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
+    # At the demo's 40 cameras of 96 px (with 24 of 64 px a few pixels of depth noise at the head's
+    # silhouette pass the test: the limit of the depth-change test)
+    m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red",
+                 "data.n_cameras=40", "data.width=96", "data.height=96")
     assert "rejected" not in m["init"] and m["count_added_init"] == 0
     assert m["gaussians_added"] == 0 == m["true_gaussians_added"] and m["gaussians_after"] == m["gaussians_before"]
     assert m["warnings"] == []

@@ -153,10 +153,18 @@ def new_gaussians_from_depth(
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
     depth_changed = relative_change > threshold
-    # A change of shape covers a patch; isolated pixels beyond the threshold are the depth's noise
-    # (outliers): keep only pixels of a 3 x 3 patch that changed everywhere (a morphological opening).
-    depth_changed = dilate(~dilate(~depth_changed, 1), 1) & depth_changed
+    # A change of shape covers more than one pixel; an isolated pixel beyond the threshold is the
+    # depth's noise (an outlier): keep changed pixels with a changed pixel among their 8 neighbours.
+    neighbours = F.conv2d(depth_changed.float()[None, None], torch.ones(1, 1, 3, 3, device=device), padding=1)[0, 0] - 1
+    depth_changed = depth_changed & (neighbours >= 0.5)
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
+    # Outside the region nothing changes: what passes the test there is the noise's rate. A region
+    # whose changed pixels are not clearly more than that rate predicts (Poisson: mean + 3 std + 1)
+    # has no change of shape (a recolour), and gets no Gaussians.
+    expected = float(depth_changed[calib_px].float().mean()) * int(region.sum())
+    report.update(noise_changed_pixels=round(expected, 2))
+    if int(candidates.sum()) <= expected + 3 * expected ** 0.5 + 1:
+        candidates = torch.zeros_like(candidates)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True
     chosen = candidates & grid
