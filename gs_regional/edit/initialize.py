@@ -51,14 +51,17 @@ def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Ten
     """Per-channel gain and offset fitted (least squares on `pixels`) to map `image` onto
     `reference`: a full 2D edit re-generates the whole view and shifts its tone, which is not a
     change of the region."""
-    x, y = image[pixels], reference[pixels]  # (K, 3)
+    # Closed form in float64 (not a LAPACK solve, whose last bits can depend on memory alignment:
+    # a view edited alone and in a batch must give the same target).
+    x, y = image[pixels].double(), reference[pixels].double()  # (K, 3)
     out = torch.empty_like(image)
     for c in range(3):
-        if float(x[:, c].std()) < 1e-3:  # no contrast to fit a gain on: shift only
+        dx, dy = x[:, c] - x[:, c].mean(), y[:, c] - y[:, c].mean()
+        if float(dx.std()) < 1e-3:  # no contrast to fit a gain on: shift only
             gain, offset = 1.0, float((y[:, c] - x[:, c]).mean())
         else:
-            A = torch.stack([x[:, c], torch.ones_like(x[:, c])], -1)
-            gain, offset = torch.linalg.lstsq(A, y[:, c : c + 1]).solution[:, 0].tolist()
+            gain = float((dx * dy).sum() / (dx * dx).sum())
+            offset = float(y[:, c].mean() - gain * x[:, c].mean())
         out[..., c] = image[..., c] * gain + offset
     return out.clamp(0, 1)
 
