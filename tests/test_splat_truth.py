@@ -8,6 +8,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -16,6 +17,7 @@ from trial_helpers import metrics_of, trial_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json
 from gs_regional.edit.localize import render_selection
+from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.launch import main
 from gs_regional.registry import find
 from gs_regional.utils.sh import sh_to_rgb
@@ -245,4 +247,25 @@ def test_donut_regional_edit_end_to_end(tmp_path):
     # the donut floats on black: both parts of the unedited pixels are scored
     assert m["psnr_unedited_silhouette"] > 20 and m["psnr_unedited_background"] > 20
     assert os.path.getsize(os.path.join(trial, "save", "edited.ply")) > 0
+    assert_unedited_rows_untouched(ply, trial, m)
     print(f"donut add, tiny budget: {seconds:.1f} s, metrics {m}")
+
+
+def assert_unedited_rows_untouched(source_ply, trial, m):
+    """Issue 11 §4, on a real splat after densify and prune: with optimize_all false, every output
+    Gaussian outside the edit region and not new is its source row, every parameter bit-identical."""
+    # the run must have densified and pruned, so the rows were reordered and resized before the check
+    assert m["count_densified"] > 0 and m["count_pruned"] > 0
+    source = GaussianModel.from_ply(source_ply)
+    edited = GaussianModel.from_ply(os.path.join(trial, "save", "edited.ply"))
+    with np.load(os.path.join(trial, "save", "edit_mask.npz")) as f:
+        mask, generation, source_index = (torch.from_numpy(f[k]) for k in ("mask", "generation", "source_index"))
+    assert len(mask) == edited.num_gaussians
+    untouched = ~mask.bool() & (generation == 0)
+    rows = source_index[untouched]
+    # each source row outside the region comes out exactly once
+    assert int(untouched.sum()) == m["gaussians_before"] - m["count_selected"] > 0
+    assert bool((rows >= 0).all()) and rows.unique().numel() == rows.numel()
+    for name in PARAMS:
+        out, src = getattr(edited, name).detach()[untouched], getattr(source, name).detach()[rows]
+        assert torch.equal(out, src), f"{name}: {int((out != src).reshape(len(out), -1).any(1).sum())} unedited rows changed"
