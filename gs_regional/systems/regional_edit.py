@@ -11,7 +11,7 @@ import torch
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
-from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_agreement, render_selection
+from gs_regional.edit.localize import expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection
 from gs_regional.edit.prune import useless_added
 from gs_regional.edit.views import frontier_view, nearest_cameras, spread_subset
 from gs_regional.geometry import rows
@@ -124,6 +124,7 @@ class RegionalEdit(EditSystemBase):
         self.source_selection: Optional[torch.Tensor] = None  # (n_source,) bool, set by localization
         self.first_edit: Optional[torch.Tensor] = None
         self.refine_start_count = 0
+        self.localized_masks: Dict[int, torch.Tensor] = {}  # view -> (H, W) bool, localize -> initialize
 
     def check_settings(self) -> None:
         """Settings that cannot work fail at start-up, naming the key and the allowed range."""
@@ -209,8 +210,15 @@ class RegionalEdit(EditSystemBase):
         self.add_time("localize", time.perf_counter() - t0)
         if self.scene.ground_truth is not None:
             self.localize_metrics.update(mask_metrics(self.source_selection.cpu(), self.scene.ground_truth.region.cpu()))
-        for i in views:
-            m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
+        # The selection rendered back into each view, from the lift's kept pixel weights when there
+        # was a lift (no new renders); initialization reuses these masks.
+        weights = lifted["views"] if masks is not None else None
+        for k, i in enumerate(views):
+            if weights is not None:
+                m3 = splat_selection(weights[k], selected)
+            else:
+                m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
+            self.localized_masks[i] = m3 > 0.5
             self.save_image(f"localize/mask3d_{i:03d}.png", overlay_mask(self.source_renders[i], m3 > 0.5))
         if selected.any():
             g.select(selected).save_ply(str(self.save_dir / "mask.ply"))
@@ -232,7 +240,9 @@ class RegionalEdit(EditSystemBase):
         views = self.localize_views
         # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
         # editor is most confident about the region, usually a frontal one.
-        regions = [self.rendered_mask(i) for i in views]
+        # The localized masks of the views (kept by run_localize; rendered again after a resume).
+        regions = [self.localized_masks.pop(i, None) for i in views]
+        regions = [self.rendered_mask(i) if r is None else r for i, r in zip(views, regions)]
         if self.masks2d is not None:
             regions = [r | m.bool().to(self.device) for r, m in zip(regions, self.masks2d)]
             areas = self.masks2d.flatten(1).sum(1).float()
