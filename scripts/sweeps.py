@@ -22,7 +22,7 @@ METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit",
     "ssim_region_vs_true_edit", "ssim_region_source_vs_true_edit", "psnr_unedited", "ssim_unedited",
-    "mask_iou", "mask_precision", "mask_recall", "view_agreement", "gaussians_before", "gaussians_added",
+    "mask_iou", "mask_precision", "mask_recall", "view_agreement", "edit_coverage", "gaussians_before", "gaussians_added",
     "gaussians_pruned", "gaussians_after", "true_gaussians_added", "ply_bytes", "source_ply_bytes",
     "unet_evals", "seconds", "seconds_total", "warnings", "stopped", "footprint_fraction",
 )

@@ -361,3 +361,30 @@ def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kil
     assert (state["gs_regional"]["extra"]["phase"], state["global_step"]) == resumes_from
     assert launch(tmp_path, "killed", f"resume={ckpt}") == 0
     same_outputs(trial(tmp_path, "killed"), reference["trial"])  # counters of the whole run included
+
+
+# ------------------------------------------------------------------ the safe path when the method can tell it fails
+def test_first_edit_outside_the_localized_region_stops_with_the_source_unchanged(tmp_path, capsys):
+    """The simulated editor's relevance misses the region beyond 20° from the front: localization
+    selects another part (mask IoU 0 against the truth) while the views still agree well enough
+    (view_agreement above its minimum). The first full edit changes the view outside that
+    selection: the run says so and writes the source unchanged instead of a no-op "edit"."""
+    from gs_regional.sim.scene import make_edit
+
+    assert launch(tmp_path, "side", "system.guidance.side_miss_start=0", "system.guidance.side_miss_end=20") == 0
+    assert "the first edited view" in capsys.readouterr().err
+    m = metrics(trial(tmp_path, "side"))
+    assert m["stopped"] == "edit outside the region" and m["mask_iou"] < 0.1
+    assert m["view_agreement"] >= 0.3  # the older check passes: only the new one sees the failure
+    assert m["edit_coverage"] < 0.5 and len(m["warnings"]) == 1
+    assert "system.localization.min_edit_coverage=0.5" in m["warnings"][0]
+    assert f"{m['edit_coverage']:.2f}" in m["warnings"][0]
+    assert m["gaussians_added"] == 0 and m["psnr_unedited"] == 120.0  # the source, unchanged
+    edited = ply_arrays(trial(tmp_path, "side") / "save" / "edited.ply")
+    source = make_edit("add").source
+    np.testing.assert_array_equal(np.stack([edited[k] for k in "xyz"], 1), source.means.detach().numpy())
+
+
+def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
+    m = metrics(reference["trial"])
+    assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5

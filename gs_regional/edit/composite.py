@@ -9,6 +9,46 @@ from gs_regional.edit.initialize import match_colors
 from gs_regional.utils.image import dilate
 
 
+def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, noise_sigmas: float) -> tuple:
+    """Where the 2D editor really changed the view, beyond what regenerating it does everywhere.
+
+    `calm` (H, W) bool are pixels the edit should leave alone: there the editor's tone drift is
+    fitted (a gain and an offset per channel, given at least 16 pixels) and taken out of the whole
+    view, then 1.4826 x the median of what still differs from the source is its noise (a
+    Gaussian's std). Returns ((H, W) in [0, 1]: 0 up to `noise_sigmas` x that noise, 1 from twice
+    that; the tone-matched `edited`)."""
+    if int(calm.sum()) >= 16:  # enough pixels to see what regenerating the view did to its tone
+        edited = match_colors(edited, source, calm)
+    change = (edited - source).abs().amax(-1)
+    threshold = max(noise_sigmas * 1.4826 * float(change[calm].median()), 1.0 / 255)
+    return ((change - threshold) / threshold).clamp(0, 1), edited
+
+
+def edit_coverage(
+    edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
+    source: torch.Tensor,  # (H, W, 3) render of the unedited scene
+    region: torch.Tensor,  # (H, W) bool: where the localized Gaussians render
+    opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
+    margin_px: int = 2,
+    noise_sigmas: float = 4.0,
+) -> Optional[float]:
+    """The fraction of the editor's change (`real_change`: beyond `noise_sigmas` x its noise,
+    measured on the opaque pixels beyond `margin_px` of `region`) that lies within `margin_px` of
+    `region`: near 1 when the editor edits what localization selected, low when it edits
+    something else. Empty background (not `opaque`, not near the region) is left out: no Gaussian
+    renders there, and its noise, clipped at black, would set the threshold below the blur of
+    regenerating the object. None when it cannot be told: fewer than 16 calm pixels, or no change."""
+    near = dilate(region, margin_px) if margin_px > 0 else region
+    seen = torch.ones_like(near) if opaque is None else near | opaque.to(near.device)
+    calm = seen & ~near
+    if int(calm.sum()) < 16:
+        return None
+    changed, _ = real_change(edited, source, calm, noise_sigmas)
+    changed = changed * seen
+    total = float(changed.sum())
+    return float(changed[near].sum()) / total if total > 0 else None
+
+
 def composite_target(
     edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
     source: torch.Tensor,  # (H, W, 3) render of the unedited scene
@@ -22,10 +62,10 @@ def composite_target(
     nor on the parts of the region the edit leaves alone.
 
     The editor's noise is measured beyond `margin_px` of the region (and of the added Gaussians),
-    where it only regenerates the image: first its tone drift there is fitted (a gain and an offset
-    per channel) and taken out of the whole view; then 1.4826 x the median of what still differs
-    from the source is the noise (a Gaussian's std). The target keeps the edited view where it
-    differs from the source by more than `noise_sigmas` x that noise (fully from twice that), and
+    where it only regenerates the image (`real_change`: its tone drift there fitted and taken out
+    of the whole view, then the robust std of what still differs from the source). The target
+    keeps the edited view where it differs from the source by more than `noise_sigmas` x that
+    noise (fully from twice that), and
     only where the region renders (its coverage as the weight). An edit that may add geometry
     (`added` given, possibly all zero) keeps such changes also within `margin_px` of the region
     and the added Gaussians: room for geometry the edit adds."""
@@ -38,11 +78,8 @@ def composite_target(
     if bool(far.any()):
         raw_change = (edited - source).abs().amax(-1)
         raw_noise = 1.4826 * float(raw_change[far].median())
-        if int(far.sum()) >= 16:  # enough pixels to see what regenerating the view did to its tone
-            edited = match_colors(edited, source, far)
-        change = (edited - source).abs().amax(-1)
-        threshold = max(noise_sigmas * 1.4826 * float(change[far].median()), 1.0 / 255)
-        weight = weight * ((change - threshold) / threshold).clamp(0, 1)
+        changed, edited = real_change(edited, source, far, noise_sigmas)
+        weight = weight * changed
         if added is not None and margin_px > 0:
             # Beyond the region only clear changes count (the editor's bleed is a change too, but
             # weaker than what it paints): the margin's threshold leaves the tone drift in.
