@@ -73,7 +73,7 @@ def test_localization_recovers_the_true_region(edit):
     images = torch.stack([renderer.render(gt.source, cams[i])["rgb"].detach() for i in views])
     vc = [cams[i] for i in views]
     thresholded = editor.mask(images, gt.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, cameras=vc)
-    masks = snap_masks_to_edges(thresholded, images, lc.edge_snap_ratio)
+    masks = snap_masks_to_edges(thresholded, images, ratio=0.5)  # the measured setting (off by default)
     robust = localize_gaussians(gt.source, renderer, vc, masks, lc.mask_threshold,
                                 lc.reweight_iters, lc.agreement_power, lc.knn)
     unsnapped = localize_gaussians(gt.source, renderer, vc, thresholded, lc.mask_threshold,
