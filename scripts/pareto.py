@@ -22,14 +22,13 @@ only (a donut run costs several times a synthetic one here). Every run uses 24 c
 --quick (a test runs it; about 30 s): the synthetic `add` only, 16 cameras at 48², the regional
 edit at 1x10 (m 3) and 2x15 (m 4), in2n at 40 steps, the plain vote at 1x10.
 """
-import argparse
 import os
 import sys
 from typing import List
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import sweeps  # noqa: E402
-from sweeps import ABLATIONS, METHOD_COLORS, Run, regional_budget  # noqa: E402
+from sweeps import ABLATIONS, METHOD_COLORS, Run, fmt, regional_budget  # noqa: E402
 
 QUALITY = (("psnr_region_vs_true_edit", "in-region PSNR vs true edit (dB)"),
            ("psnr_unedited", "unedited-region PSNR vs source (dB)"))
@@ -96,22 +95,16 @@ def chart(records: List[dict], edit: str, path: str) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="a few runs at small budgets (the test's mode)")
-    ap.add_argument("--out", required=True, help="folder for pareto.json, the PNGs and the runs")
+    ap = sweeps.arg_parser(__doc__, "pareto.json")
     ap.add_argument("--edits", nargs="+", default=None,
                     help="which edits (default: add for --quick, else recolor add global donut_recolor donut_add)")
-    ap.add_argument("--replot", action="store_true", help="no runs: redraw the charts and the table from OUT/pareto.json")
     args = ap.parse_args(argv)
     edits = args.edits or (["add"] if args.quick else ["recolor", "add", "global", "donut_recolor", "donut_add"])
     unknown = [e for e in edits if e not in sweeps.EDITS]
     if unknown:
         ap.error(f"unknown edit(s) {unknown}; known: {', '.join(sweeps.EDITS)}")
     header = {"quick": args.quick, "scene": sweeps.scene_overrides(args.quick)}
-    if args.replot:
-        records = sweeps.read_records(os.path.join(args.out, "pareto.json"), args.quick)
-    else:
-        records = sweeps.run_all(plan(args.quick, edits), args.quick, args.out, "pareto.json", header)
+    records = sweeps.records_for(args, lambda: plan(args.quick, edits), "pareto.json", header)
     for edit in dict.fromkeys(r["edit"] for r in records):
         chart(records, edit, os.path.join(args.out, f"pareto_{edit}.png"))
     print("\n| edit | method | settings | edit s | UNet evals | in-region PSNR (doing nothing) | unedited PSNR | Gaussians added |")
@@ -124,10 +117,6 @@ def main(argv=None) -> int:
               f"{fmt(r['psnr_region_vs_true_edit'])} ({fmt(r['psnr_region_source_vs_true_edit'])}) | "
               f"{fmt(r['psnr_unedited'])} | {r['gaussians_added']} |")
     return 0
-
-
-def fmt(x) -> str:
-    return "n/a" if x is None else f"{x:.2f}"
 
 
 if __name__ == "__main__":

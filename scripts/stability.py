@@ -26,14 +26,13 @@ the simulated depth to see it in the first edited view, so initialization adds n
 --quick (a test runs it; about 40 s): `leakage` at 3 severities for the regional edit at 1x10,
 in2n (40 steps) and the empty instruction, 16 cameras at 48².
 """
-import argparse
 import os
 import sys
 from typing import Dict, List, Optional
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import sweeps  # noqa: E402
-from sweeps import ABLATIONS, METHOD_COLORS, Run, regional_budget  # noqa: E402
+from sweeps import ABLATIONS, METHOD_COLORS, Run, fmt, regional_budget  # noqa: E402
 
 G, D = "system.guidance", "system.depth"
 # mode -> (the part of the pipeline it corrupts, [(severity label, overrides)], index of the default).
@@ -218,21 +217,11 @@ def scenario_rows(records: List[dict]) -> List[str]:
     return rows
 
 
-def fmt(x) -> str:
-    return "n/a" if x is None else f"{x:.2f}"
-
-
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="a few runs at small budgets (the test's mode)")
-    ap.add_argument("--out", required=True, help="folder for stability.json, the PNGs and the runs")
-    ap.add_argument("--replot", action="store_true", help="no runs: redraw the charts and the table from OUT/stability.json")
+    ap = sweeps.arg_parser(__doc__, "stability.json")
     args = ap.parse_args(argv)
     header = {"quick": args.quick, "scene": sweeps.scene_overrides(args.quick)}
-    if args.replot:
-        records = sweeps.read_records(os.path.join(args.out, "stability.json"), args.quick)
-    else:
-        records = sweeps.run_all(plan(args.quick), args.quick, args.out, "stability.json", header)
+    records = sweeps.records_for(args, lambda: plan(args.quick), "stability.json", header)
     table = breaks(records, args.quick)
     sweeps.write_json(os.path.join(args.out, "stability.json"), {**header, "breaks": table, "records": records})
     chart(records, args.quick, "psnr_region_vs_true_edit", "in-region PSNR vs true edit (dB)",

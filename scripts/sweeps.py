@@ -9,11 +9,12 @@ in for the real priors (see the README's "The simulated editor").
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 from bench_edit import ROOT, run
 
@@ -158,6 +159,22 @@ def run_all(runs: Sequence[Run], quick: bool, out: str, json_name: str, header: 
     return records
 
 
+def arg_parser(doc: str, json_name: str) -> argparse.ArgumentParser:
+    """The options every sweep script takes: --quick, --out, --replot."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="a few runs at small budgets (the test's mode)")
+    ap.add_argument("--out", required=True, help=f"folder for {json_name}, the PNGs and the runs")
+    ap.add_argument("--replot", action="store_true", help=f"no runs: redraw the charts and the table from OUT/{json_name}")
+    return ap
+
+
+def records_for(args: argparse.Namespace, plan: Callable[[], Sequence[Run]], json_name: str, header: dict) -> List[dict]:
+    """The records of a sweep: read back from OUT/json_name with --replot, else run `plan()`."""
+    if args.replot:
+        return read_records(os.path.join(args.out, json_name), args.quick)
+    return run_all(plan(), args.quick, args.out, json_name, header)
+
+
 def read_records(path: str, quick: bool) -> List[dict]:
     """The records of a sweep's JSON (--replot), checked to be of the same mode."""
     with open(path) as f:
@@ -193,3 +210,8 @@ def pareto_front(points: Sequence[tuple]) -> List[tuple]:
             front.append((c, q))
             best = q
     return front
+
+
+def fmt(x) -> str:
+    """A PSNR (or any float) for the tables; n/a when missing."""
+    return "n/a" if x is None else f"{x:.2f}"
