@@ -114,7 +114,7 @@ def knees(records: List[dict]) -> Dict[str, Dict[str, dict]]:
             out.setdefault(edit, {})[knob] = {
                 "knee_value": KNOBS[knob][1] if k["knob"] is None else k["value"], "knee_label": k["label"],
                 "knee_net_added": k["net_added"], "knee_psnr_region": k["psnr_region_vs_true_edit"],
-                "knee_psnr_unedited": k["psnr_unedited"],
+                "knee_psnr_unedited": k["psnr_unedited"], "knee_ssim_region": k["ssim_region_vs_true_edit"],
                 "best_psnr_region": max(r["psnr_region_vs_true_edit"] for r in rows
                                         if r["psnr_region_vs_true_edit"] is not None),
                 "default_value": KNOBS[knob][1], "default_net_added": None if default is None else default["net_added"],
@@ -131,10 +131,14 @@ def chart(records: List[dict], edit: str, path: str) -> None:
     default = next((r for r in mine if r["knob"] is None), None)
     for ax, (qkey, qlabel) in zip(axes[0], QUALITY):
         for knob, (_, _, color) in KNOBS.items():
-            pts = [(r["net_added"], r[qkey], r["label"]) for r in series(mine, edit, knob) if r[qkey] is not None]
+            rows = series(mine, edit, knob)
+            pts = [(r["net_added"], r[qkey], r["label"]) for r in rows if r[qkey] is not None]
             if len(pts) < 2:
                 continue
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=color, label=knob, alpha=0.8)
+            k = knee(rows)
+            if k is not None and k[qkey] is not None:  # ringed: the knee of this knob
+                ax.scatter([k["net_added"]], [k[qkey]], s=220, facecolors="none", edgecolors=color, linewidths=2, zorder=4)
             for x, y, label in pts:
                 if label != "default":
                     ax.annotate(label.split("=")[1], (x, y), fontsize=7, color=color, xytext=(3, 3), textcoords="offset points")
@@ -153,7 +157,8 @@ def chart(records: List[dict], edit: str, path: str) -> None:
         ax.set_ylabel(qlabel)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(f"Gaussians added against quality: {edit} edit (simulated editor; one knob at a time, the others at their defaults)",
+    fig.suptitle(f"Gaussians added against quality: {edit} edit (simulated editor; one knob at a time, the others at their "
+                 f"defaults; ringed: each knob's knee)",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
@@ -177,15 +182,16 @@ def main(argv=None) -> int:
     sweeps.write_json(os.path.join(args.out, "compactness.json"), {**header, "knees": table, "records": records})
     for edit in dict.fromkeys(r["edit"] for r in records):
         chart(records, edit, os.path.join(args.out, f"compactness_{edit}.png"))
-    print("\n| edit | run | added - pruned = left (true edit) | in-region PSNR (doing nothing) | unedited PSNR | edit s |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("\n| edit | run | added - pruned = left (true edit) | in-region PSNR (doing nothing) | in-region SSIM | unedited PSNR | edit s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for r in records:
         if r.get("error"):
-            print(f"| {r['edit']} | {r['label']} | failed: {r['error']} | | | |")
+            print(f"| {r['edit']} | {r['label']} | failed: {r['error']} | | | | |")
             continue
         print(f"| {r['edit']} | {r['label']} | {r['gaussians_added']} - {r['gaussians_pruned']} = {r['net_added']} "
               f"({r['true_gaussians_added']}) | {fmt(r['psnr_region_vs_true_edit'])} "
-              f"({fmt(r['psnr_region_source_vs_true_edit'])}) | {fmt(r['psnr_unedited'])} | {r['edit_seconds']:.1f} |")
+              f"({fmt(r['psnr_region_source_vs_true_edit'])}) | {ssim(r['ssim_region_vs_true_edit'])} | "
+              f"{fmt(r['psnr_unedited'])} | {r['edit_seconds']:.1f} |")
     print(f"\nknee per knob: the fewest Gaussians within {KNEE_DB} dB of the knob's best in-region PSNR:\n")
     print("| edit | knob | knee | its Gaussians, PSNR | default | its Gaussians, PSNR | default at the knee? |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
@@ -195,6 +201,10 @@ def main(argv=None) -> int:
                   f"{k['default_value']:g} | {k['default_net_added']}, {fmt(k['default_psnr_region'])} | "
                   f"{'yes' if k['default_at_knee'] else 'no'} |")
     return 0
+
+
+def ssim(x) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
 
 
 if __name__ == "__main__":
