@@ -24,6 +24,8 @@ class InitConfig:
     # (relative). A colour change alone adds nothing: refinement recolours the existing Gaussians.
     depth_change: float = 0.03
     noise_sigmas: float = 4.0
+    min_changed_fraction: float = 0.01
+    scale_evidence: float = 1.5  # see new_gaussians_from_depth: when the edited view's own depth scale is used
     # A calibration fitted on fewer pixels, or whose median relative residual exceeds
     # `max_calibration_residual`, is rejected: no Gaussians from depth, densification only.
     min_calibration_pixels: int = 256
@@ -132,19 +134,40 @@ def new_gaussians_from_depth(
     disp_edited = median_filter(disp_edited, cfg.median)
     a_u, b_u = robust_affine(disp_unedited, disp_3dgs, calib_px)
     a_e, b_e = robust_affine(disp_edited, disp_3dgs, calib_px)
+    # The edited view is put on the unedited view's calibration (`a_u`, `b_u`) through a map of its
+    # own disparity onto the unedited one, fitted outside the region. The estimator sees two
+    # near-identical images alike, so an offset is preferred: a second scale fitted on the few
+    # pixels outside the region is extrapolated over the region and the background (the donut's
+    # recolour showed hundreds of pixels "nearer" that way). Only a map that explains those pixels
+    # clearly better (median residual `scale_evidence` x smaller) brings its scale.
+    offset = float((disp_unedited - disp_edited)[calib_px].median())
+    a_eu, b_eu = robust_affine(disp_edited, disp_unedited, calib_px)
+    res_offset = float((disp_edited + offset - disp_unedited)[calib_px].abs().median())
+    res_affine = float((a_eu * disp_edited + b_eu - disp_unedited)[calib_px].abs().median())
+    if res_offset <= cfg.scale_evidence * res_affine:
+        disp_edited_u, report["edited_depth_map"] = disp_edited + offset, "offset"
+    else:
+        disp_edited_u, report["edited_depth_map"] = a_eu * disp_edited + b_eu, "affine"
     d_mono_u = calibrated_depth(disp_unedited, a_u, b_u)
-    d_mono_e = calibrated_depth(disp_edited, a_e, b_e)
-    d_new = transfer_depth(d_mono_e, d_mono_u, d3)
+    d_mono_e = calibrated_depth(disp_edited_u, a_u, b_u)
+    # Where the source renders background there is no scene depth to transfer the change onto:
+    # the edited view's calibrated depth itself places what the edit puts there.
+    d_new = torch.where(valid, transfer_depth(d_mono_e, d_mono_u, d3), d_mono_e)
     # How well each fit explains the rendered depth: the median relative disparity residual on the
     # calibration pixels (≈ the relative depth error of a typical pixel).
     residual = max(
         float(((a * disp + b - disp_3dgs).abs() / disp_3dgs)[calib_px].median())
         for a, b, disp in ((a_u, b_u, disp_unedited), (a_e, b_e, disp_edited))
     )
-    relative_change = (d_new - d3).abs() / d3
-    # Outside the region nothing changes, so the relative change measured there is the noise of
-    # the quantity thresholded below (1.4826 x median absolute value: a Gaussian's std).
-    noise = 1.4826 * float(relative_change[calib_px & torch.isfinite(relative_change)].median())
+    # The change of shape, measured in disparity (where the estimator's noise is even; in depth it
+    # explodes where the disparity nears zero, over the background) relative to the scene's
+    # disparity, positive where the edited view is nearer. Only nearer pixels can need new
+    # Gaussians: what moves back is uncovered, not added, and a silhouette blurred or shifted by
+    # noise moves both ways.
+    relative_change = a_u * (disp_edited_u - disp_unedited) / disp_3dgs
+    # Outside the region nothing changes, so the change measured there is the noise of the
+    # quantity thresholded below (1.4826 x median absolute value: a Gaussian's std).
+    noise = 1.4826 * float(relative_change[calib_px & torch.isfinite(relative_change)].abs().median())
     threshold = max(cfg.depth_change, cfg.noise_sigmas * noise)
     report.update(
         scale_unedited=float(a_u), shift_unedited=float(b_u), scale_edited=float(a_e), shift_edited=float(b_e),
@@ -155,7 +178,7 @@ def new_gaussians_from_depth(
                          f"residual {residual:.3f} > system.init.max_calibration_residual={cfg.max_calibration_residual})")
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
-    depth_changed = relative_change > threshold
+    depth_changed = relative_change > threshold  # nearer by more than the noise
     # A change of shape covers more than one pixel; an isolated pixel beyond the threshold is the
     # depth's noise (an outlier): keep changed pixels with a changed pixel among their 8 neighbours.
     neighbours = F.conv2d(depth_changed.float()[None, None], torch.ones(1, 1, 3, 3, device=device), padding=1)[0, 0] - 1
@@ -164,9 +187,11 @@ def new_gaussians_from_depth(
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
     # whose changed pixels are not clearly more than that rate predicts (Poisson: mean + 3 std + 1)
     # has no change of shape (a recolour), and gets no Gaussians.
+    # A handful of pixels (a silhouette a pixel off) is no new object either: fewer than
+    # `min_changed_fraction` of the region's pixels is no change of shape.
     expected = float(depth_changed[calib_px].float().mean()) * int(region.sum())
     report.update(noise_changed_pixels=round(expected, 2))
-    if int(candidates.sum()) <= expected + 3 * expected ** 0.5 + 1:
+    if int(candidates.sum()) <= max(expected + 3 * expected ** 0.5 + 1, cfg.min_changed_fraction * int(region.sum())):
         candidates = torch.zeros_like(candidates)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True
