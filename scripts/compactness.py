@@ -14,14 +14,16 @@ pruned), one line per knob, the default starred, the true edit's count as a vert
 nothing as a horizontal one. Prints the table. The launch.py trials land in OUT/runs/.
 
 The knee of a knob: the run with the fewest Gaussians whose in-region PSNR is within KNEE_DB of the
-best of that knob's runs (the default included). The default sits at the knee when it keeps no more
+best of that knob's runs (the default included) and whose in-region SSIM is within KNEE_SSIM of
+theirs (a PSNR knee alone can hide a loss of structure: the add edit's budget 0 kept the PSNR but
+lost 0.02 SSIM). The default sits at the knee when it keeps no more
 than KNEE_SLACK x the knee's Gaussians (or is the knee).
 
 Full (the default; 14 runs of the synthetic `add` edit, about 15 min on this 2-core CPU, then 7 of
 `donut_add`, skipped with a message without ../shared/data/donut): the demo's scene and budget
 (40 cameras at 96², 3 cycles x 100 iterations, m 8: the default run is the demo), the
-densification threshold at 5e-5 ... 1.5e-3 (default 2e-4), the budget at 0 ... 1000 (default
-20000, i.e. no cap here), the pruning threshold at 0 ... 25 pixels of rendered weight (default 0.1).
+densification threshold at 5e-5 ... 1.5e-3 (default 5e-4), the budget at 0 ... 1000 (default
+20000, i.e. no cap here), the pruning threshold at 0 ... 25 pixels of rendered weight (default 1).
 The donut (45,624 Gaussians, a run costs several times the synthetic one) gets fewer values per knob.
 --quick (a test runs it; about 30 s): the synthetic `add` on 16 cameras at 48², 1x10 (m 3), the
 default and one other value per knob.
@@ -36,18 +38,19 @@ from sweeps import Run, fmt, regional_budget  # noqa: E402
 
 # knob -> (the override's key, its default, its colour in the charts)
 KNOBS = {
-    "grad_threshold": ("system.densify.grad_threshold", 2e-4, "tab:blue"),
+    "grad_threshold": ("system.densify.grad_threshold", 5e-4, "tab:blue"),
     "budget": ("system.densify.budget", 20000, "tab:orange"),
-    "prune_min_weight": ("system.refine.prune_min_weight", 0.1, "tab:green"),
+    "prune_min_weight": ("system.refine.prune_min_weight", 1.0, "tab:green"),
 }
 # The values swept (the default is the shared default run), from adding a lot to adding nothing.
 VALUES = {
-    "add": {"grad_threshold": [5e-5, 1e-4, 5e-4, 1.5e-3], "budget": [0, 100, 250, 500, 1000],
-            "prune_min_weight": [0.0, 1.0, 5.0, 25.0]},
-    "donut_add": {"grad_threshold": [1e-4, 1e-3], "budget": [0, 250, 1000], "prune_min_weight": [5.0]},
+    "add": {"grad_threshold": [5e-5, 2e-4, 1e-3, 1.5e-3], "budget": [0, 100, 250, 500, 1000],
+            "prune_min_weight": [0.0, 0.1, 5.0, 25.0]},
+    "donut_add": {"grad_threshold": [2e-4, 1e-3], "budget": [0, 250], "prune_min_weight": [5.0]},
 }
 QUICK_VALUES = {"add": {"grad_threshold": [1.5e-3], "budget": [0], "prune_min_weight": [5.0]}}
 KNEE_DB = 0.25  # quality within this of the knob's best counts as no loss
+KNEE_SSIM = 0.005  # ... and in-region SSIM within this of the knob's best
 KNEE_SLACK = 1.1  # the default is at the knee when it keeps at most this x the knee's Gaussians
 QUALITY = (("psnr_region_vs_true_edit", "in-region PSNR vs true edit (dB)"),
            ("psnr_unedited", "unedited-region PSNR vs source (dB)"))
@@ -90,12 +93,16 @@ def series(records: List[dict], edit: str, knob: str) -> List[dict]:
 
 
 def knee(rows: List[dict]) -> Optional[dict]:
-    """The run with the fewest Gaussians whose in-region PSNR is within KNEE_DB of the best of `rows`."""
+    """The run with the fewest Gaussians whose in-region PSNR is within KNEE_DB of the best of `rows`
+    and whose in-region SSIM is within KNEE_SSIM of the best (when the rows have SSIMs)."""
     rows = [r for r in rows if r["psnr_region_vs_true_edit"] is not None]
     if not rows:
         return None
     best = max(r["psnr_region_vs_true_edit"] for r in rows)
-    good = [r for r in rows if r["psnr_region_vs_true_edit"] >= best - KNEE_DB]
+    ssims = [r.get("ssim_region_vs_true_edit") for r in rows if r.get("ssim_region_vs_true_edit") is not None]
+    best_ssim = max(ssims) if ssims else None
+    good = [r for r in rows if r["psnr_region_vs_true_edit"] >= best - KNEE_DB and (
+        best_ssim is None or r.get("ssim_region_vs_true_edit") is None or r["ssim_region_vs_true_edit"] >= best_ssim - KNEE_SSIM)]
     return min(good, key=lambda r: (r["net_added"], -r["psnr_region_vs_true_edit"]))
 
 

@@ -54,3 +54,7 @@ def test_knee_is_the_fewest_gaussians_within_the_margin_of_the_best():
     assert compactness.knee(rows)["label"] == "b"  # 20.9 is within 0.25 dB of 21.1
     rows[1]["psnr_region_vs_true_edit"] = 20.8
     assert compactness.knee(rows)["label"] == "c"
+    for r, ssim in zip(rows, (0.70, 0.80, 0.811, 0.813)):  # with SSIMs: structure may not be lost either
+        r["ssim_region_vs_true_edit"] = ssim
+    rows[1]["psnr_region_vs_true_edit"] = 20.9
+    assert compactness.knee(rows)["label"] == "c"  # b keeps the PSNR but loses 0.013 SSIM

@@ -100,7 +100,7 @@ class RefineConfig:
     # contribute nothing are removed: total rendered weight over the training views below
     # `prune_min_weight` (in pixels) or opacity below `prune_min_opacity`.
     prune_added: bool = True
-    prune_min_weight: float = 0.1
+    prune_min_weight: float = 1.0
     prune_min_opacity: float = 0.005
 
 
@@ -118,10 +118,12 @@ class RegionalEdit(EditSystemBase):
         # Densification during refinement. Its steps count within each cycle (never at a cycle's
         # last step); only the editable Gaussians are densified and pruned unless
         # refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
+        # The threshold (5e-4, 2.5x 3DGS's) and refine.prune_min_weight (1 px) sit at the knee of
+        # scripts/compactness.py: fewer Gaussians would cost quality, more add none.
         densify: DensifyStrategy = field(
             default_factory=lambda: DensifyStrategy(
                 start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000,
-                child_generation=1,
+                child_generation=1, grad_threshold=5e-4,
             )
         )
 
