@@ -189,17 +189,14 @@ def main(argv=None) -> int:
     sweeps.write_json(os.path.join(args.out, "compactness.json"), {**header, "knees": table, "records": records})
     for edit in dict.fromkeys(r["edit"] for r in records):
         chart(records, edit, os.path.join(args.out, f"compactness_{edit}.png"))
-    print("\n| edit | run | added - pruned = left (true edit) | in-region PSNR (doing nothing) | in-region SSIM | unedited PSNR | edit s |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for r in records:
-        if r.get("error"):
-            print(f"| {r['edit']} | {r['label']} | failed: {r['error']} | | | | |")
-            continue
-        print(f"| {r['edit']} | {r['label']} | {r['gaussians_added']} - {r['gaussians_pruned']} = {r['net_added']} "
-              f"({r['true_gaussians_added']}) | {fmt(r['psnr_region_vs_true_edit'])} "
-              f"({fmt(r['psnr_region_source_vs_true_edit'])}) | {ssim(r['ssim_region_vs_true_edit'])} | "
-              f"{fmt(r['psnr_unedited'])} | {r['edit_seconds']:.1f} |")
-    print(f"\nknee per knob: the fewest Gaussians within {KNEE_DB} dB of the knob's best in-region PSNR:\n")
+    sweeps.print_table(
+        records, ["edit", "run", "added - pruned = left (true edit)", "in-region PSNR (doing nothing)", "in-region SSIM",
+                  "unedited PSNR", "edit s"], ["edit", "label"],
+        lambda r: [f"{r['gaussians_added']} - {r['gaussians_pruned']} = {r['net_added']} ({r['true_gaussians_added']})",
+                   f"{fmt(r['psnr_region_vs_true_edit'])} ({fmt(r['psnr_region_source_vs_true_edit'])})",
+                   ssim(r["ssim_region_vs_true_edit"]), fmt(r["psnr_unedited"]), f"{r['edit_seconds']:.1f}"])
+    print(f"\nknee per knob: the fewest Gaussians within {KNEE_DB} dB of the knob's best in-region PSNR and "
+          f"{KNEE_SSIM} of its best SSIM:\n")
     print("| edit | knob | knee | its Gaussians, PSNR | default | its Gaussians, PSNR | default at the knee? |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for edit, row in table.items():

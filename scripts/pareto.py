@@ -107,15 +107,12 @@ def main(argv=None) -> int:
     records = sweeps.records_for(args, lambda: plan(args.quick, edits), "pareto.json", header)
     for edit in dict.fromkeys(r["edit"] for r in records):
         chart(records, edit, os.path.join(args.out, f"pareto_{edit}.png"))
-    print("\n| edit | method | settings | edit s | UNet evals | in-region PSNR (doing nothing) | unedited PSNR | Gaussians added |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in records:
-        if r.get("error"):
-            print(f"| {r['edit']} | {r['method']} | {r['label']} | failed: {r['error']} | | | | |")
-            continue
-        print(f"| {r['edit']} | {r['method']} | {r['label']} | {r['edit_seconds']:.1f} | {r['unet_evals']} | "
-              f"{fmt(r['psnr_region_vs_true_edit'])} ({fmt(r['psnr_region_source_vs_true_edit'])}) | "
-              f"{fmt(r['psnr_unedited'])} | {r['gaussians_added']} |")
+    sweeps.print_table(
+        records, ["edit", "method", "settings", "edit s", "UNet evals", "in-region PSNR (doing nothing)", "unedited PSNR",
+                  "Gaussians added"], ["edit", "method", "label"],
+        lambda r: [f"{r['edit_seconds']:.1f}", str(r["unet_evals"]),
+                   f"{fmt(r['psnr_region_vs_true_edit'])} ({fmt(r['psnr_region_source_vs_true_edit'])})",
+                   fmt(r["psnr_unedited"]), str(r["gaussians_added"])])
     return 0
 
 

@@ -215,3 +215,13 @@ def pareto_front(points: Sequence[tuple]) -> List[tuple]:
 def fmt(x) -> str:
     """A PSNR (or any float) for the tables; n/a when missing."""
     return "n/a" if x is None else f"{x:.2f}"
+
+
+def print_table(records: Sequence[dict], columns: Sequence[str], lead: Sequence[str], cells: Callable[[dict], Sequence[str]]) -> None:
+    """A markdown table of the records: `lead` keys name each run; a failed run shows its error."""
+    print("\n| " + " | ".join(columns) + " |")
+    print("| " + " | ".join("---" for _ in columns) + " |")
+    for r in records:
+        head = [str(r[k]) for k in lead]
+        rest = [f"failed: {r['error']}"] + [""] * (len(columns) - len(lead) - 1) if r.get("error") else list(cells(r))
+        print("| " + " | ".join(head + rest) + " |")
