@@ -363,6 +363,25 @@ def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kil
     same_outputs(trial(tmp_path, "killed"), reference["trial"])  # counters of the whole run included
 
 
+def test_a_recolour_killed_in_refinement_resumes_colour_only(tmp_path, monkeypatch):
+    """A recolour trains colours only, at a raised rate (the optimizer's per-parameter rates, set
+    once at initialization): a resume in refinement must keep them, and end where the
+    uninterrupted run ends."""
+    from gs_regional.systems import regional_edit
+
+    recolour = ("data.edit=recolor", "system.prompt=make his head red")
+    assert launch(tmp_path, "whole", *recolour) == 0
+    with monkeypatch.context() as m:
+        _kill_in(m, regional_edit.RegionalEdit, "edit_cycle_views", _at_cycle(1))
+        with pytest.raises(SimulatedKill):
+            launch(tmp_path, "killed", *recolour)
+    ckpt = trial(tmp_path, "killed") / "ckpts" / "last.ckpt"
+    assert launch(tmp_path, "killed", f"resume={ckpt}", *recolour) == 0
+    init = metrics(trial(tmp_path, "whole"))["init"]
+    assert init["added"] == 0 and "rejected" not in init  # a trusted "no change of shape": colour only
+    same_outputs(trial(tmp_path, "killed"), trial(tmp_path, "whole"))
+
+
 # ------------------------------------------------------------------ the safe path when the method can tell it fails
 def test_first_edit_outside_the_localized_region_stops_with_the_source_unchanged(tmp_path, capsys):
     """The simulated editor's relevance misses the region beyond 20° from the front: localization
