@@ -62,11 +62,7 @@ def label_of(knob: Optional[str], value) -> str:
 
 def plan(quick: bool, edits: List[str]) -> List[Run]:
     runs = []
-    for edit in edits:
-        why = sweeps.edit_available(edit)
-        if why:
-            print(why)
-            continue
+    for edit in sweeps.available_edits(edits):
         budget = regional_budget(1, 10, 3) if quick else []  # full: the config's own (the demo's) budget
         runs.append(Run(edit, "regional-edit", "default", budget, {"knob": None, "value": None}, demo_scene=not quick))
         for knob, values in (QUICK_VALUES if quick else VALUES)[edit].items():

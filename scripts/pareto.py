@@ -41,11 +41,7 @@ def budget_label(cycles: int, iterations: int, m: int) -> str:
 
 def plan(quick: bool, edits: List[str]) -> List[Run]:
     runs = []
-    for edit in edits:
-        why = sweeps.edit_available(edit)
-        if why:
-            print(why)
-            continue
+    for edit in sweeps.available_edits(edits):
         donut = edit.startswith("donut")
         if quick:
             budgets, ref, steps = [(1, 10, 3), (2, 15, 4)], (1, 10, 3), [40]

@@ -116,6 +116,18 @@ def donut_data_for_in2n(edit: str) -> List[str]:
     return out
 
 
+def available_edits(edits: Sequence[str]) -> List[str]:
+    """The edits whose data is here; each missing one is named on stdout (and skipped)."""
+    out = []
+    for edit in edits:
+        why = edit_available(edit)
+        if why:
+            print(why)
+        else:
+            out.append(edit)
+    return out
+
+
 def edit_available(edit: str) -> Optional[str]:
     """None when the edit's data is present, else why it is skipped."""
     if edit.startswith("donut") and not os.path.exists(DONUT):
