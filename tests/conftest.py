@@ -1,6 +1,7 @@
 """Test session set-up: never touch the network; locate the shared data."""
 import os
 import socket
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,9 @@ os.environ["HF_DATASETS_OFFLINE"] = "1"
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # Idle OpenMP threads sleep instead of spinning (see launch.py); set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+# The benchmark scripts (scripts/*.py) import as modules in the tests that check them.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
 # ../shared/data beside the checkout; GS_REGIONAL_DATA points elsewhere (e.g. from a git worktree).
 SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")

@@ -11,10 +11,9 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
 
-from bench_pipeline import resample_gaussians  # noqa: E402
-from gs_regional.sim.scene import make_scene  # noqa: E402
+from bench_pipeline import resample_gaussians
+from gs_regional.sim.scene import make_scene
 
 # The synthetic scene resampled to 4000 Gaussians; 4 localization views, 2 cycles of 4 steps
 # editing the frontal view and its 2 nearest, 4 DDIM steps.

@@ -1,19 +1,12 @@
 """scripts/compactness.py --quick (issue 11 §4) runs end to end: compactness.json with one record per
 run, the knee of each knob among the swept runs, and the chart. The quick mode is a check of the
 script, not a measurement."""
-import json
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-
-import compactness  # noqa: E402
+import compactness
+from trial_helpers import run_quick
 
 
 def test_compactness_quick_writes_records_knees_and_chart(tmp_path):
-    assert compactness.main(["--quick", "--out", str(tmp_path)]) == 0
-    payload = json.loads((tmp_path / "compactness.json").read_text())
+    payload = run_quick(compactness, tmp_path, "compactness.json")
     records = payload["records"]
     assert payload["quick"] is True
     assert [r["label"] for r in records] == [

@@ -1,18 +1,11 @@
 """scripts/pareto.py --quick (issue 11 §2) runs end to end: pareto.json with one record per run
 and the metrics of §1, and the chart. The quick mode is a check of the script, not a measurement."""
-import json
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-
-import pareto  # noqa: E402
+import pareto
+from trial_helpers import run_quick
 
 
 def test_pareto_quick_writes_records_and_chart(tmp_path):
-    assert pareto.main(["--quick", "--out", str(tmp_path)]) == 0
-    payload = json.loads((tmp_path / "pareto.json").read_text())
+    payload = run_quick(pareto, tmp_path, "pareto.json")
     records = payload["records"]
     assert payload["quick"] is True
     assert [(r["method"], r["label"]) for r in records] == [

@@ -1,24 +1,17 @@
 """scripts/stability.py --quick (issue 11 §3) runs end to end: stability.json with the records,
 the break table and the charts; and the safe path of an instruction about nothing (the views
 disagree about the region: the run warns and writes the source unchanged)."""
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from trial_helpers import ply_arrays
+import stability
+from trial_helpers import ply_arrays, run_quick
 from gs_regional.sim.scene import make_edit
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-
-import stability  # noqa: E402
 
 
 def test_stability_quick_writes_records_table_and_charts(tmp_path):
-    assert stability.main(["--quick", "--out", str(tmp_path)]) == 0
-    payload = json.loads((tmp_path / "stability.json").read_text())
+    payload = run_quick(stability, tmp_path, "stability.json")
     records = {r["key"]: r for r in payload["records"]}
     assert sorted(records) == sorted([
         "add/regional-edit/default", "add/in2n/default", "add/regional-edit/leakage=0",

@@ -19,6 +19,13 @@ def metrics_of(trial):
         return json.load(f)
 
 
+def run_quick(script, out, json_name):
+    """`script.main(["--quick", "--out", out])` (a sweep of scripts/), then its JSON payload."""
+    assert script.main(["--quick", "--out", str(out)]) == 0
+    with open(os.path.join(out, json_name)) as f:
+        return json.load(f)
+
+
 def ply_arrays(path):
     """Every vertex property of a PLY as a numpy array."""
     v = PlyData.read(str(path))["vertex"].data
