@@ -280,11 +280,13 @@ class RegionalEdit(EditSystemBase):
             areas = self.masks2d.flatten(1).sum(1).float()
         else:
             areas = torch.stack([r.sum() for r in regions]).float()
+        alphas: Dict[int, torch.Tensor] = {}  # source opacity per view, rendered once
         if cfg.initialize and not bool(g.mask.all()):
             # Among the views that leave enough pixels outside the region to calibrate the
             # monocular depth on (a region that fills the view leaves none), when there are any.
+            alphas = {i: self.source_alpha(i) for i in views}
             calibratable = torch.tensor([
-                int(calibration_pixels(self.source_alpha(i), r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
+                int(calibration_pixels(alphas[i], r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
                 for i, r in zip(views, regions)
             ], device=areas.device)
             if bool(calibratable.any()):
@@ -300,7 +302,7 @@ class RegionalEdit(EditSystemBase):
         # Does the editor edit what localization selected? (No ground truth needed; a global edit
         # selects everything and leaves nothing to compare with.)
         coverage = None if bool(g.mask.all()) else edit_coverage(
-            self.first_edit, unedited, localized[v], opaque=self.source_alpha(v) > 0.5,
+            self.first_edit, unedited, localized[v], opaque=(alphas[v] if v in alphas else self.source_alpha(v)) > 0.5,
             noise_sigmas=cfg.refine.composite_noise_sigmas)
         self.localize_metrics["edit_coverage"] = coverage
         if coverage is not None and coverage < cfg.localization.min_edit_coverage:
