@@ -17,7 +17,7 @@ The knee of a knob: the run with the fewest Gaussians whose in-region PSNR is wi
 best of that knob's runs (the default included) and whose in-region SSIM is within KNEE_SSIM of
 theirs (a PSNR knee alone can hide a loss of structure: the add edit's budget 0 kept the PSNR but
 lost 0.02 SSIM). The default sits at the knee when it keeps no more
-than KNEE_SLACK x the knee's Gaussians (or is the knee).
+than KNEE_SLACK x the knee's Gaussians and is itself within those margins of the best.
 
 Full (the default; 14 runs of the synthetic `add` edit, about 15 min on this 2-core CPU, then 7 of
 `donut_add`, skipped with a message without ../shared/data/donut): the demo's scene and budget
@@ -36,11 +36,14 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import sweeps  # noqa: E402
 from sweeps import Run, fmt, regional_budget  # noqa: E402
 
-# knob -> (the override's key, its default, its colour in the charts)
+from gs_regional.systems.regional_edit import RegionalEdit  # noqa: E402
+
+# knob -> (the override's key, its default (the regional edit's own), its colour in the charts)
+_DEFAULTS = RegionalEdit.Config()
 KNOBS = {
-    "grad_threshold": ("system.densify.grad_threshold", 5e-4, "tab:blue"),
-    "budget": ("system.densify.budget", 20000, "tab:orange"),
-    "prune_min_weight": ("system.refine.prune_min_weight", 1.0, "tab:green"),
+    "grad_threshold": ("system.densify.grad_threshold", _DEFAULTS.densify.grad_threshold, "tab:blue"),
+    "budget": ("system.densify.budget", _DEFAULTS.densify.budget, "tab:orange"),
+    "prune_min_weight": ("system.refine.prune_min_weight", _DEFAULTS.refine.prune_min_weight, "tab:green"),
 }
 # The values swept (the default is the shared default run), from adding a lot to adding nothing.
 VALUES = {
@@ -88,18 +91,23 @@ def series(records: List[dict], edit: str, knob: str) -> List[dict]:
     return sorted(rows, key=lambda r: KNOBS[knob][1] if r["knob"] is None else r["value"])
 
 
-def knee(rows: List[dict]) -> Optional[dict]:
-    """The run with the fewest Gaussians whose in-region PSNR is within KNEE_DB of the best of `rows`
-    and whose in-region SSIM is within KNEE_SSIM of the best (when the rows have SSIMs)."""
+def no_loss(rows: List[dict]) -> List[dict]:
+    """The rows whose in-region PSNR is within KNEE_DB of the best of `rows` and whose in-region
+    SSIM is within KNEE_SSIM of the best (when the rows have SSIMs)."""
     rows = [r for r in rows if r["psnr_region_vs_true_edit"] is not None]
     if not rows:
-        return None
+        return []
     best = max(r["psnr_region_vs_true_edit"] for r in rows)
     ssims = [r.get("ssim_region_vs_true_edit") for r in rows if r.get("ssim_region_vs_true_edit") is not None]
     best_ssim = max(ssims) if ssims else None
-    good = [r for r in rows if r["psnr_region_vs_true_edit"] >= best - KNEE_DB and (
+    return [r for r in rows if r["psnr_region_vs_true_edit"] >= best - KNEE_DB and (
         best_ssim is None or r.get("ssim_region_vs_true_edit") is None or r["ssim_region_vs_true_edit"] >= best_ssim - KNEE_SSIM)]
-    return min(good, key=lambda r: (r["net_added"], -r["psnr_region_vs_true_edit"]))
+
+
+def knee(rows: List[dict]) -> Optional[dict]:
+    """The run with the fewest Gaussians among those with no loss of quality (`no_loss`)."""
+    good = no_loss(rows)
+    return min(good, key=lambda r: (r["net_added"], -r["psnr_region_vs_true_edit"])) if good else None
 
 
 def knees(records: List[dict]) -> Dict[str, Dict[str, dict]]:
@@ -113,7 +121,9 @@ def knees(records: List[dict]) -> Dict[str, Dict[str, dict]]:
             default = next((r for r in rows if r["knob"] is None), None)
             if k is None or len(rows) < 2:
                 continue
-            at_knee = default is not None and (default is k or default["net_added"] <= KNEE_SLACK * max(k["net_added"], 0))
+            # At the knee: no loss of quality itself, and at most KNEE_SLACK x the knee's Gaussians.
+            at_knee = default is not None and any(r is default for r in no_loss(rows)) and \
+                default["net_added"] <= KNEE_SLACK * max(k["net_added"], 0)
             out.setdefault(edit, {})[knob] = {
                 "knee_value": KNOBS[knob][1] if k["knob"] is None else k["value"], "knee_label": k["label"],
                 "knee_net_added": k["net_added"], "knee_psnr_region": k["psnr_region_vs_true_edit"],
