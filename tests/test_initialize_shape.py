@@ -93,6 +93,7 @@ def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     assert "rejected" not in m["init"] and m["count_added_init"] == 0
     assert m["gaussians_added"] == 0 == m["true_gaussians_added"] and m["gaussians_after"] == m["gaussians_before"]
     assert m["warnings"] == []
+    assert m["t_starts"] == [750, 500, 250]  # a recolour's schedule: t_schedule, not shape_t_schedule
     edited = GaussianModel.from_ply(Path(trial_of(tmp_path, "recolour")) / "save" / "edited.ply")
     source = make_edit("recolor").source
     for name in ("means", "quats", "log_scales", "opacity_logits"):  # PLY float32 round trip: exact
@@ -108,3 +109,4 @@ def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_pat
     assert m["init"]["calibration_residual"] > 0.05 and m["init"]["calibration_pixels"] > 0
     assert len(m["warnings"]) == 1 and "depth calibration rejected" in m["warnings"][0]
     assert any("depth calibration rejected" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+    assert m["t_starts"] == [450, 350, 250]  # the shape may change: the lower shape_t_schedule
