@@ -45,13 +45,14 @@ if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
 SCHEMA_VERSION = 1
-# Budgets: real-size = the paper's schedule (configs/edit.yaml: 3 cycles from t 750/500/250, m = 20,
+# Budgets: real-size = the paper's schedule (configs/edit.yaml: 3 cycles from t 750/500/250, an edit
+# that changes the shape from 450/350/250, m = 20,
 # 500 steps per cycle, 24 localization views) against in2n's 1500 steps; tiny = the CPU demo's
 # (configs/demo.yaml, configs/in2n.yaml), minutes on a CPU.
 BUDGETS = {
-    "real-size": dict(resolution=512, cycles=3, t_schedule=[750, 500, 250], m=20, iterations=500, max_views=24,
+    "real-size": dict(resolution=512, cycles=3, t_schedule=[750, 500, 250], shape_t_schedule=[450, 350, 250], m=20, iterations=500, max_views=24,
                       in2n_steps=1500, turntable_frames=48, densify_every=100),
-    "tiny": dict(resolution=64, cycles=3, t_schedule=[750, 500, 250], m=8, iterations=100, max_views=12,
+    "tiny": dict(resolution=64, cycles=3, t_schedule=[750, 500, 250], shape_t_schedule=[450, 350, 250], m=8, iterations=100, max_views=12,
                  in2n_steps=300, turntable_frames=12, densify_every=50),
 }
 
@@ -360,7 +361,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--renderer", default=None, help="system.renderer_type (default: configs/edit.yaml's)")
     ap.add_argument("--prompt", default="give him a mustache")
     ap.add_argument("--cycles", type=int, default=None)
-    ap.add_argument("--t-schedule", type=int, nargs="+", default=None, help="start timestep of each cycle")
+    ap.add_argument("--t-schedule", type=int, nargs="+", default=None, help="start timestep of each cycle (a recolour)")
+    ap.add_argument("--shape-t-schedule", type=int, nargs="+", default=None,
+                    help="start timestep of each cycle of an edit that changes the shape")
     ap.add_argument("--m", type=int, default=None, help="views edited per cycle around the frontal one")
     ap.add_argument("--iterations", type=int, default=None, help="steps per cycle")
     ap.add_argument("--max-views", type=int, default=None, help="localization views")
@@ -421,10 +424,12 @@ def main(argv=None) -> dict:
         f"system.depth.pretrained={priors['depth_anything']}", f"system.depth.dtype={report['dtype']}",
         f"system.depth.device={args.device}", "system.depth.local_files_only=true",
         f"system.refine.cycles={args.cycles}", f"system.refine.t_schedule=[{','.join(map(str, args.t_schedule))}]",
+        f"system.refine.shape_t_schedule=[{','.join(map(str, args.shape_t_schedule))}]",
         f"system.refine.m={args.m}", f"system.refine.iterations_per_cycle={args.iterations}",
         f"system.localization.max_views={args.max_views}", f"system.densify.every={args.densify_every}",
     ]
-    report["schedule"] = {"cycles": args.cycles, "t_schedule": args.t_schedule, "m": args.m,
+    report["schedule"] = {"cycles": args.cycles, "t_schedule": args.t_schedule,
+                          "shape_t_schedule": args.shape_t_schedule, "m": args.m,
                           "iterations_per_cycle": args.iterations, "localization_views": args.max_views,
                           "densify_every": args.densify_every,
                           "ddim_steps": args.ddim_steps, "in2n_steps": args.in2n_steps, "in2n_edit_every": args.edit_every}

@@ -16,8 +16,10 @@ from bench_pipeline import resample_gaussians
 from gs_regional.sim.scene import make_scene
 
 # The synthetic scene resampled to 4000 Gaussians; 4 localization views, 2 cycles of 4 steps
-# editing the frontal view and its 2 nearest, 4 DDIM steps.
-BUDGET = ["--gaussians", "4000", "--max-views", "4", "--cycles", "2", "--t-schedule", "750", "500", "--iterations", "4", "--m", "2",
+# editing the frontal view and its 2 nearest, 4 DDIM steps (the same start timesteps whether or not
+# the random-weight depth finds a change of shape).
+BUDGET = ["--gaussians", "4000", "--max-views", "4", "--cycles", "2", "--t-schedule", "750", "500",
+          "--shape-t-schedule", "750", "500", "--iterations", "4", "--m", "2",
           "--ddim-steps", "4", "--in2n-steps", "6", "--edit-every", "3", "--turntable-frames", "2"]
 
 
