@@ -206,7 +206,8 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
         f"system.guidance.pretrained={tiny_models['ip2p']}", "system.guidance.num_inference_steps=4",
         "system.guidance_type=seed-recording-ip2p", "system.initialize=false",
         "system.localization.max_views=4", "system.localization.gamma=0.5", "system.localization.mask_threshold=0.3",
-        "system.refine.cycles=1", "system.refine.t_schedule=[750]", "system.refine.m=5",
+        "system.refine.cycles=1", "system.refine.t_schedule=[750]", "system.refine.shape_t_schedule=[750]",
+        "system.refine.m=5",
         "trainer.max_steps=1", "checkpoint.every_n_train_steps=1", "system.eval.turntable_frames=2",
         "trainer.enable_progress_bar=false",
     ]
