@@ -1,7 +1,7 @@
 """§3.1: lift per-view 2D masks to a per-Gaussian mask and render it back."""
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -10,37 +10,53 @@ from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import gaussian_blur
+from gs_regional.utils.sh import sh_to_color
 
 
 @torch.no_grad()
-def snap_masks_to_edges(masks: torch.Tensor, images: torch.Tensor, ratio: float = 0.5, sigma: float = 1.0) -> torch.Tensor:
-    """Drop from each 2D mask (B, H, W) the pixels of its one-pixel edge that look like the outside.
-
-    Why: relevance maps are blobby (they come from 64x64 latents and are blurred), so a mask's edge
-    lies about a pixel outside the object's. A pixel there is mostly the neighbouring surface, and a
-    surface seen at a grazing angle next to the region (a neck under a head) projects into that
-    one-pixel seam in every view: the lift would select all of it. An edge pixel is dropped when
-    its colour in `images` (B, H, W, 3) is closer, by at least 1 / `ratio`, to the local mean colour
-    of the outside than to that of the mask's interior (Gaussian-weighted means, `sigma` px); a
-    blended or ambiguous rim pixel (dark shading against a dark background) stays. Image-sized
-    work only: the cost does not depend on the number of Gaussians. `ratio` <= 0 changes nothing."""
-    if ratio <= 0:
-        return masks
+def edge_colour_references(masks: torch.Tensor, images: torch.Tensor, sigma: float = 1.0) -> tuple:
+    """For each 2D mask (B, H, W): its one-pixel edge where a verdict is possible, and there the
+    local mean colour (Gaussian-weighted, `sigma` px) of the mask's interior and of the outside,
+    from `images` (B, H, W, 3). Returns (edge (B, H, W) bool, mean_in, mean_out (B, H, W, 3)).
+    An edge pixel with no interior or no outside pixel nearby gets no verdict (not in `edge`)."""
     inside = masks > 0.5
     interior = F.max_pool2d((~inside).float()[:, None], 3, 1, 1)[:, 0] < 0.5  # not next to the outside
-    edge = inside & ~interior
     img = images.to(masks.device).float().permute(0, 3, 1, 2)  # (B, 3, H, W)
 
-    def distance_to_local_mean(where: torch.Tensor) -> tuple:
+    def local_mean(where: torch.Tensor) -> tuple:
         w = where.float()
         den = gaussian_blur(w, sigma)
-        mean = torch.stack([gaussian_blur(img[:, c] * w, sigma) for c in range(3)], 1) / den[:, None].clamp_min(1e-6)
-        return (img - mean).norm(dim=1), den > 1e-3  # no such pixels nearby: no verdict
+        mean = torch.stack([gaussian_blur(img[:, c] * w, sigma) for c in range(3)], -1) / den[..., None].clamp_min(1e-6)
+        return mean, den > 1e-3
 
-    d_in, has_in = distance_to_local_mean(interior)
-    d_out, has_out = distance_to_local_mean(~inside)
-    outside_like = edge & has_in & has_out & (d_out < ratio * d_in)
-    return (inside & ~outside_like).to(masks.dtype)
+    mean_in, has_in = local_mean(interior)
+    mean_out, has_out = local_mean(~inside)
+    return inside & ~interior & has_in & has_out, mean_in, mean_out
+
+
+@torch.no_grad()
+def outside_like_edge_votes(
+    view: PixelWeights, colours: torch.Tensor, edge: torch.Tensor, mean_in: torch.Tensor, mean_out: torch.Tensor,
+    ratio: float,
+) -> torch.Tensor:
+    """(N,) the part of each Gaussian's mask vote (Σ_x w_i M) in one view that comes from the mask's
+    edge pixels (`edge_colour_references`) when the Gaussian's own colour in that view (`colours`
+    (N, 3)) is closer, by at least 1 / `ratio`, to the outside's local mean there than to the
+    interior's (means weighted by the Gaussian's pixel weights): a vote to drop.
+
+    Why: relevance maps are blobby (from 64x64 latents, blurred), so a mask's edge lies about a
+    pixel outside the object's, and a surface seen at a grazing angle next to the region (a neck
+    under a head) projects into that one-pixel seam in every view: the lift would select all of
+    it. An edge pixel is shared by the region's Gaussians and the outside's; each Gaussian's own
+    colour tells which side it is on, so the region's silhouette keeps its votes (dropping the
+    pixel for everyone lost them). One extra gather per view: the cost is that of a render."""
+    e = edge.float()[..., None]
+    g = view.gather(torch.cat([e, mean_in * e, mean_out * e], -1))  # (N, 7)
+    w_edge = g[:, 0]
+    seen = w_edge > 1e-8
+    d_in = (colours - g[:, 1:4] / w_edge.clamp_min(1e-8)[:, None]).norm(dim=1)
+    d_out = (colours - g[:, 4:7] / w_edge.clamp_min(1e-8)[:, None]).norm(dim=1)
+    return torch.where(seen & (d_out < ratio * d_in), w_edge, torch.zeros_like(w_edge))
 
 
 def view_weights(model, renderer, cameras: Sequence[Camera]) -> list:
@@ -96,8 +112,13 @@ def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) 
 def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
     reweight_iters: int = 2, agreement_power: float = 2.0, knn: int = 16,
+    images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0,
 ) -> dict:
-    """§3.1 step 4 with two robustness steps of our own (both can be switched off):
+    """§3.1 step 4 with three robustness steps of our own (all can be switched off):
+
+    * edge test (`edge_ratio` > 0, needs the views' `images` (V, H, W, 3)): a Gaussian's votes from
+      a mask's one-pixel edge are dropped in a view where its own colour looks like the outside's
+      rather than the interior's (`outside_like_edge_votes`); 0 changes nothing.
 
     * view reweighting: a 2D editor fails in some views (side views, leakage). After a first lift,
       each view's vote is weighted by (IoU of its 2D mask with the render of the 3D mask) **
@@ -110,6 +131,13 @@ def localize_gaussians(
     """
     views = view_weights(model, renderer, cameras)
     num, den = mask_votes(views, masks)
+    if edge_ratio > 0:
+        if images is None:
+            raise ValueError("localize_gaussians: edge_ratio > 0 needs the views' images")
+        edge, mean_in, mean_out = edge_colour_references(torch.stack([m.float() for m in masks]), images)
+        for v, (view, cam) in enumerate(zip(views, cameras)):
+            colours = sh_to_color(model.sh_degree, model.sh.detach(), model.means.detach(), cam.center).clamp(0, 1)
+            num[v] -= outside_like_edge_votes(view, colours, edge[v], mean_in[v], mean_out[v], edge_ratio)
     # the neighbours do not change between reweighting passes: found once
     neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
     weights = torch.ones(len(cameras), device=num.device)

@@ -12,7 +12,7 @@ from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target, edit_coverage
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
-    expand_selection, localize_gaussians, mask_agreement, render_selection, snap_masks_to_edges, splat_selection,
+    expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
 )
 from gs_regional.edit.prune import useless_added
 from gs_regional.edit.views import frontier_view, nearest_cameras, spread_subset
@@ -37,13 +37,12 @@ class LocalizeConfig:
     samples: int = 1  # noise draws averaged per view
     blur_sigma: float = 2.0  # Gaussian filter that removes isolated specks (pixels)
     mask_threshold: float = 0.5  # a Gaussian is selected if its weighted mask vote exceeds this
-    # Before the lift, a mask's edge pixels that look clearly like the outside (colour closer to the
-    # outside's local mean by this factor, 0.5 is the measured choice) are dropped: blobby relevance
-    # maps reach a pixel past the region, and a surface seen edge-on beside it (a neck under a head)
-    # is selected whole (gs_regional.edit.localize.snap_masks_to_edges). Off (0) by default for now:
-    # on the demo 0.5 lifts the mask IoU 0.85 -> 0.91 but the footprint PSNR moves -0.03 dB (add) /
-    # -0.21 dB (recolor), and under strong leakage (1.5) the edit no longer lands (README).
-    edge_snap_ratio: float = 0.0
+    # In the lift, a Gaussian's votes from a mask's one-pixel edge are dropped in a view where its
+    # own colour is closer to the outside's local mean colour than to the interior's by this factor
+    # (gs_regional.edit.localize.outside_like_edge_votes): blobby relevance maps reach a pixel past
+    # the region, and a surface seen edge-on beside it (a neck under a head) is selected whole.
+    # 0 switches it off. Off by default for now (README "Why not higher").
+    edge_colour_ratio: float = 0.0
     # Robust lifting (gs_regional.edit.localize.localize_gaussians); 0 / 1 give the plain vote.
     reweight_iters: int = 2  # re-lift with views weighted by their agreement with the 3D mask
     agreement_power: float = 2.0  # view weight = IoU(2D mask, rendered 3D mask) ** power
@@ -234,17 +233,15 @@ class RegionalEdit(EditSystemBase):
                 images, cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
                 samples=lc.samples, seed=cfg.seed, cameras=cams,
             )
-            # The snap serves the lift only: initialization keeps the editor's own masks (room for
-            # geometry the edit adds past the region's edge).
-            snapped = snap_masks_to_edges(masks, images, lc.edge_snap_ratio)
             lifted = localize_gaussians(
-                g, self.renderer, [c.to(self.device) for c in cams], snapped, threshold=lc.mask_threshold,
+                g, self.renderer, [c.to(self.device) for c in cams], masks, threshold=lc.mask_threshold,
                 reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
+                images=images, edge_ratio=lc.edge_colour_ratio,
             )
             selected = lifted["selected"]
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
-            iou = mask_agreement(lifted["views"], snapped, selected)
+            iou = mask_agreement(lifted["views"], masks, selected)
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
