@@ -20,10 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 VIEW = 10  # a frontal view of the face (the demo picks it as its first edited view)
 
 
-def initialize(edit: str, corruption: float = 1.0):
-    """new_gaussians_from_depth at a frontal view of the synthetic `edit`, with the true 2D region."""
+def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96):
+    """new_gaussians_from_depth at `view` (a frontal one by default) of the synthetic `edit`, with
+    the true 2D region."""
     gt = make_edit(edit)
-    cam = make_cameras()[0][VIEW]
+    cam = make_cameras(n_cameras, size, size)[0][view]
     renderer = find("torch-rasterizer")()
     editor = find("simulated-editor")()
     depth = find("simulated-depth")({"corruption": corruption})
@@ -91,6 +92,7 @@ def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     # depth over the background, a second calibration extrapolated over the region).
     m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
     assert "rejected" not in m["init"] and m["count_added_init"] == 0
+    assert len(m["init"]["views_checked"]) == InitConfig().views  # no view's depth shows a change of shape
     assert m["gaussians_added"] == 0 == m["true_gaussians_added"] and m["gaussians_after"] == m["gaussians_before"]
     assert m["warnings"] == []
     assert m["t_starts"] == [750, 500, 250]  # a recolour's schedule: t_schedule, not shape_t_schedule
@@ -101,6 +103,22 @@ def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     changed = (edited.sh_dc.detach() != source.sh_dc.detach()).flatten(1).any(1).numpy()
     selected = np.load(Path(trial_of(tmp_path, "recolour")) / "save" / "edit_mask.npz")["mask"]
     assert changed.any() and not changed[~selected].any()  # colours change in the selection only
+
+
+def test_an_addition_at_64px_is_found_in_a_second_view_when_the_first_edit_misplaces_it(tmp_path):
+    """At 64² the first edited view of the sweeps' scene (24 cameras, view 18) gets a full edit
+    whose moustache the editor drew 3 px low (its position jitter), more than the moustache is
+    thick there (1-5 px): the depth of that image shows no change of shape. The edit is not taken
+    for a recolour on that one view: the next view's edit shows the moustache in depth and the
+    Gaussians come from there."""
+    misplaced = find("simulated-editor")().view_jitter(make_cameras(24, 64, 64)[0][18])["shift"]
+    assert float(misplaced.norm()) > 2.9  # the premise: the first edit is misplaced by about 3 px
+    _, _, report = initialize("add", view=18, n_cameras=24, size=64)
+    assert "rejected" not in report and report["added"] == 0  # its depth alone says "no change of shape"
+    m = tiny_run(tmp_path, "add64", "system.refine.cycles=1")
+    assert m["init"]["views_checked"][0] == 18 and len(m["init"]["views_checked"]) == 2
+    assert m["count_added_init"] >= 5 and m["v_first"] == m["init"]["views_checked"][1]
+    assert m["warnings"] == []
 
 
 def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_path, caplog):

@@ -118,7 +118,9 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
     assert rows["ran"].startswith("train regional-edit on synthetic-scene") and "30 steps" in rows["ran"]
     m = json.loads((trial / "save" / "metrics.json").read_text())
     assert rows["Gaussians"] == (f"{m['gaussians_before']:,} before, +{m['count_added_init']:,} from depth, "
-                                 f"+{m['count_densified']:,} densified -> {m['gaussians_after']:,} after")
+                                 f"+{m['count_densified']:,} densified"
+                                 + (f", -{m['count_pruned']:,} pruned" if m.get("count_pruned") else "")
+                                 + f" -> {m['gaussians_after']:,} after")
     assert f"mask IoU {m['mask_iou']:.3f}" in rows["metrics"]
     assert f"PSNR vs true edit {m['psnr_vs_true_edit']:.2f} dB" in rows["metrics"]
     assert all(stage in rows["stages (s)"] for stage in ("localize", "initialize", "refine_train", "output"))

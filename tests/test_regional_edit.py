@@ -32,6 +32,11 @@ COMMON = [
 ]
 SMALL = COMMON + [
     "system.localization.max_views=12",
+    # Depth initialization on the first view only: its depth shows no change of shape here, so these
+    # runs take the recolour path, as they did before `system.init.views` (a second view finds the
+    # moustache). On the densifying path a resume between cycles does not reproduce the scene
+    # (densified and pruned counts differ; also at 5f2be59 with system.initialize=false): open.
+    "system.init.views=1",
     "system.refine.iterations_per_cycle=30", "system.refine.m=5", "system.densify.every=10",
 ]
 
@@ -296,9 +301,11 @@ def test_edit_yaml_runs_end_to_end_with_tiny_real_models(tmp_path, tiny_models):
     m = metrics_of(trial)
     assert (Path(trial) / "save" / "edited.ply").exists()
     assert (Path(trial) / "ckpts" / "last.ckpt").exists()
-    # 2 relevance branches per view, then 3 per denoising step: a full edit of v_first and the
-    # partial edits of each cycle (4 steps at 1000/4 spacing: 3 steps <= 750, 2 steps <= 500).
-    assert m["unet_evals"] == 2 * 4 + 3 * 4 + 3 * 3 * 2 + 3 * 2 * 3
+    # 2 relevance branches per view, then 3 per denoising step: a full edit of v_first, a full edit
+    # of a second view (the random depth shows no change of shape in the first: system.init.views)
+    # and the partial edits of each cycle (4 steps at 1000/4 spacing: 3 steps <= 750, 2 steps <= 500).
+    assert m["init"]["views_checked"][0] == m["v_first"] and len(m["init"]["views_checked"]) == 2
+    assert m["unet_evals"] == 2 * 4 + 3 * 4 * 2 + 3 * 3 * 2 + 3 * 2 * 3
     assert -1.0 <= m["clip_direction_similarity"] <= 1.0 and -1.0 <= m["clip_image_similarity"] <= 1.0
     assert "psnr_unedited" in m and m["gaussians_before"] == make_edit("add").source.num_gaussians
     # The input files were not touched.

@@ -25,6 +25,12 @@ class InitConfig:
     depth_change: float = 0.03
     noise_sigmas: float = 4.0
     min_changed_fraction: float = 0.01
+    # A view whose depth shows no change of shape may still be an addition the editor drew a few
+    # pixels off (its position jitter: at 64² a 3 px shift moves the synthetic moustache, 1-5 px
+    # thick, off itself, and its depth shows nothing); the edit counts as a recolour only when
+    # the full edits of this many views (largest regions first) show none. Each extra view costs
+    # one full edit, spent only when the views before it show no change of shape.
+    views: int = 2
     scale_evidence: float = 1.5  # see new_gaussians_from_depth: when the edited view's own depth scale is used
     # A calibration fitted on fewer pixels, or whose median relative residual exceeds
     # `max_calibration_residual`, is rejected: no Gaussians from depth, densification only.

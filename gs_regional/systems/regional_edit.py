@@ -326,13 +326,36 @@ class RegionalEdit(EditSystemBase):
             log.warning("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
             self.counts["added_init"] = 0
         elif cfg.initialize:
-            out = self.render_view(v)
-            region = regions[views.index(v)]
-            disp = self.depth_estimator.disparity(torch.stack([unedited, edited.to(self.device)]), cameras=[cam, cam])
-            params, report, d_new = new_gaussians_from_depth(
-                cam, unedited, edited.to(self.device), region, out["depth"], out["alpha"], disp[0], disp[1], cfg.init, g.sh_degree,
-                region_means=g.means.detach()[g.mask],
-            )
+            # The recolour path (no Gaussian added, shapes frozen) is decided on the depth of up to
+            # `init.views` full edits, largest regions first: one edit can draw a thin new object a
+            # few pixels off, and its depth then shows no change of shape.
+            ranked = [views[i] for i in torch.argsort(areas, descending=True, stable=True).tolist() if views[i] != v]
+            order = ([v] + ranked)[: max(cfg.init.views, 1)]
+            found = None  # (view, edit, params, report, d_new, disparities) of the view depth initialization uses
+            for k, u in enumerate(order):
+                cam_u, unedited_u = scene.cameras[u], self.source_renders[u]
+                if k:
+                    log.info("initialize: the depth of view %d shows no change of shape; checking the edit of view %d",
+                             order[k - 1], u)
+                    edited = self.guidance.edit(unedited_u[None], unedited_u[None], cfg.prompt, t_start=None,
+                                                seed=cfg.seed, cameras=[cam_u])[0]
+                out = self.render_view(u)
+                disp = self.depth_estimator.disparity(torch.stack([unedited_u, edited.to(self.device)]), cameras=[cam_u, cam_u])
+                params, report, d_new = new_gaussians_from_depth(
+                    cam_u, unedited_u, edited.to(self.device), regions[views.index(u)], out["depth"], out["alpha"],
+                    disp[0], disp[1], cfg.init, g.sh_degree, region_means=g.means.detach()[g.mask],
+                )
+                shows_change = "rejected" not in report and report["added"] > 0
+                if k == 0 or shows_change:  # a later view's rejected calibration is no evidence either way
+                    found = (u, edited, params, report, d_new, disp)
+                if k == 0 and "rejected" in report or shows_change:
+                    break
+            v, edited, params, report, d_new, disp = found
+            report["views_checked"] = order[: k + 1]
+            if v != self.v_first:  # the view whose depth shows the change of shape is the first edited view
+                self.v_first, self.first_edit = v, edited.to(self.device)
+                self.save_image("initialize/first_view_source.png", self.source_renders[v])
+                self.save_image("initialize/first_view_edited.png", edited)
             self.init_report = report
             if "rejected" in report:
                 self.warn(f"initialize: depth calibration rejected in view {v}: {report['rejected']}; no Gaussians are "
