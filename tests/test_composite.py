@@ -72,3 +72,29 @@ def test_targets_leave_the_surroundings_of_the_edit_alone(edit):
     # The edit itself is kept: within 1 dB of the former target in the true footprint (a few
     # pixels of the jittered edit beyond the margin or within the noise now stay as the source).
     assert edit_new >= edit_former - 1.0
+
+
+def test_the_regions_silhouette_takes_the_edit_fully():
+    """A pixel the region covers partly already mixes the region's new colour with what lies
+    beside it in the edited view; weighting it by the coverage once more under-edits the region's
+    silhouette (the demo recolour: 23.2 -> 25.2 dB in the footprint with the weight saturated)."""
+    gt = make_edit("recolor")
+    cams, _ = make_cameras()
+    renderer = find("torch-rasterizer")()
+    editor = find("simulated-editor")()
+    editor.attach_ground_truth(gt)
+    rows = {"saturated": [], "proportional": [], "truth": [], "edge": []}
+    with torch.no_grad():
+        for i in VIEWS:
+            source = renderer.render(gt.source, cams[i])["rgb"]
+            truth = renderer.render(gt.edited, cams[i])["rgb"]
+            edited = editor.edit(source[None], source[None], gt.prompt, t_start=750, seed=i, cameras=[cams[i]])[0]
+            region = render_selection(gt.source, renderer, cams[i], gt.region)
+            rows["saturated"].append(composite_target(edited, source, region, None, full_coverage=0.5))
+            rows["proportional"].append(composite_target(edited, source, region, None, full_coverage=1.0))
+            rows["truth"].append(truth)
+            rows["edge"].append((region > 0.05) & (region < 0.95) & ((truth - source).abs().amax(-1) > 0.05))
+    r = {k: torch.stack(v) for k, v in rows.items()}
+    saturated, proportional = psnr(r["saturated"], r["truth"], r["edge"]), psnr(r["proportional"], r["truth"], r["edge"])
+    print(f"recolour's silhouette vs truth: coverage-weighted {proportional:.2f}, saturated {saturated:.2f} dB")
+    assert int(r["edge"].sum()) > 50 and saturated >= proportional + 0.5  # measured +1.1 dB

@@ -56,6 +56,7 @@ def composite_target(
     added: Optional[torch.Tensor] = None,  # (H, W) in [0, 1]: the same for Gaussians the edit added; None: a recolour
     margin_px: int = 6,
     noise_sigmas: float = 4.0,
+    full_coverage: float = 0.5,
 ) -> torch.Tensor:
     """The edited view where the edit is, the source render elsewhere: the editor's bleed and the
     blur and tone drift of regenerating the whole image never become targets outside the region,
@@ -66,7 +67,8 @@ def composite_target(
     of the whole view, then the robust std of what still differs from the source). The target
     keeps the edited view where it differs from the source by more than `noise_sigmas` x that
     noise (fully from twice that), and
-    only where the region renders (its coverage as the weight). An edit that may add geometry
+    only where the region renders: fully where it covers at least `full_coverage` of the pixel,
+    in proportion below. An edit that may add geometry
     (`added` given, possibly all zero) keeps such changes also within `margin_px` of the region
     and the added Gaussians: room for geometry the edit adds."""
     near = region > 0.05
@@ -74,7 +76,11 @@ def composite_target(
         near = near | (added > 0.05)
     near = dilate(near, margin_px) if margin_px > 0 else near
     far = ~near
-    weight = region.clamp(0, 1)
+    # The edited pixel already mixes the region's new look with what the region covers only
+    # partly, so weighting it by the coverage once more under-edits the region's silhouette (the
+    # demo recolour's head edge: 23.2 dB in the footprint, 25.2 saturated at 0.5; README). The
+    # weight still fades out where the region barely reaches, where the editor's bleed would pass.
+    weight = (region / full_coverage).clamp(0, 1) if full_coverage > 0 else (region > 0).to(region.dtype)
     if bool(far.any()):
         raw_change = (edited - source).abs().amax(-1)
         raw_noise = 1.4826 * float(raw_change[far].median())

@@ -101,6 +101,9 @@ class RefineConfig:
     # margin): room for geometry the edit adds. A recolour gets no margin.
     composite_dilate: int = 6
     composite_noise_sigmas: float = 4.0
+    # A pixel the region covers by at least this fraction keeps the edit fully, below it in
+    # proportion (gs_regional.edit.composite.composite_target).
+    composite_full_coverage: float = 0.5
     # A recolour (depth initialization trusted, no change of shape) trains only colours, at this
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
     # colours far in a few hundred (x6: demo recolour 17.4 -> 23.2 dB in the region, donut
@@ -464,7 +467,7 @@ class RegionalEdit(EditSystemBase):
             cam = self.scene.cameras[index].to(self.device)
             added = render_selection(self.geometry, self.renderer, cam, self.geometry.generation > 0)
         return composite_target(edited, self.source_renders[index], self.source_region(index), added,
-                                r.composite_dilate, r.composite_noise_sigmas)
+                                r.composite_dilate, r.composite_noise_sigmas, r.composite_full_coverage)
 
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":
