@@ -5,6 +5,7 @@ Every run is the demo (simulated editor and depth) at a tiny size, in-process, e
 is really killed (SIGKILL) while it writes a checkpoint. The table is the README's "What happens
 when things go wrong"."""
 import io
+import itertools
 import json
 import os
 import shutil
@@ -382,6 +383,45 @@ def test_a_recolour_killed_in_refinement_resumes_colour_only(tmp_path, monkeypat
     init = metrics(trial(tmp_path, "whole"))["init"]
     assert init["added"] == 0 and "rejected" not in init  # a trusted "no change of shape": colour only
     same_outputs(trial(tmp_path, "killed"), trial(tmp_path, "whole"))
+
+
+# Without depth initialization refinement densifies the region (clones, splits, prunes, and prunes the
+# useless added Gaussians at its end): the path whose state a resume must carry in full.
+DENSIFYING = ("system.initialize=false",)
+
+
+@pytest.fixture(scope="module")
+def densifying(tmp_path_factory):
+    out = tmp_path_factory.mktemp("densifying")
+    assert launch(out, "whole", *DENSIFYING) == 0
+    m = metrics(trial(out, "whole"))
+    assert m["count_densified"] > 0 and m["count_pruned_added"] > 0  # the path under test
+    return trial(out, "whole")
+
+
+# (how the first run ends, at which step): stopped by trainer.max_steps between cycles and mid-cycle
+# (a densification at step 6 just before it), and killed mid-cycle (checkpoint at step 6, after it).
+@pytest.mark.parametrize("end,step", [("stop", 4), ("stop", 6), ("kill", 7)])
+def test_a_densifying_run_resumed_in_refinement_ends_as_the_whole_run(end, step, densifying, tmp_path, monkeypatch):
+    """A stopped run once pruned the useless added Gaussians at its early end and checkpointed that
+    pruned scene: resumed, it densified from it and skipped the final prune (9758 Gaussians, 183
+    pruned straight through; 9924 and 32 resumed from step 4)."""
+    from gs_regional.systems import edit_base
+
+    every = ["checkpoint.every_n_train_steps=2"] if end == "kill" else []
+    if end == "stop":
+        assert launch(tmp_path, "resumed", *DENSIFYING, f"trainer.max_steps={step}") == 0
+    else:
+        with monkeypatch.context() as m:
+            calls = itertools.count()  # one optimize_on per refinement step: dies in step `step`
+            _kill_in(m, edit_base.EditSystemBase, "optimize_on", lambda *a, **k: next(calls) == step)
+            with pytest.raises(SimulatedKill):
+                launch(tmp_path, "resumed", *DENSIFYING, *every)
+    ckpt = trial(tmp_path, "resumed") / "ckpts" / "last.ckpt"
+    state = load_checkpoint_file(ckpt)
+    assert (state["gs_regional"]["extra"]["phase"], state["global_step"]) == ("refine", step if end == "stop" else 6)
+    assert launch(tmp_path, "resumed", f"resume={ckpt}", *DENSIFYING, *every) == 0
+    same_outputs(trial(tmp_path, "resumed"), densifying)
 
 
 # ------------------------------------------------------------------ the safe path when the method can tell it fails

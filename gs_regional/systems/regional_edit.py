@@ -521,6 +521,8 @@ class RegionalEdit(EditSystemBase):
             self.counts["densified"] = self.counts.get("densified", 0) + rep["cloned"] + rep["split"]
             self.counts["pruned"] = self.counts.get("pruned", 0) + rep["pruned"]
         self.add_time("refine_train", time.perf_counter() - t0)
+        if step == self.total_steps - 1:
+            self.finish_refinement()
         return None
 
     def stop_unchanged(self, reason: str, message: str) -> None:
@@ -547,15 +549,21 @@ class RegionalEdit(EditSystemBase):
         log.info("refine: pruned %d of the %d added Gaussians that contribute nothing", n, int((g.generation > 0).sum()) + n)
         return n
 
+    def finish_refinement(self) -> None:
+        """The end of refinement, inside its last step: prune the useless added Gaussians. Part of
+        the step, not of on_train_end: a run stopped earlier (trainer.max_steps) then checkpoints
+        the state refinement goes on from, so resuming it with more steps gives the whole run's
+        scene (pruned at the end, on_train_end, its checkpoint held the pruned scene and the
+        resumed run densified from that and skipped the final prune)."""
+        t0 = time.perf_counter()
+        n = self.prune_useless_added()
+        self.add_time("prune", time.perf_counter() - t0)
+        self.counts["pruned_added"] = n
+        self.counts["pruned"] = self.counts.get("pruned", 0) + n
+
     def on_train_end(self) -> None:
         if self.phase == "done":
             return
-        if self.phase == "refine" and "pruned_added" not in self.counts:
-            t0 = time.perf_counter()
-            n = self.prune_useless_added()
-            self.add_time("prune", time.perf_counter() - t0)
-            self.counts["pruned_added"] = n
-            self.counts["pruned"] = self.counts.get("pruned", 0) + n
         extra = dict(self.localize_metrics) if hasattr(self, "localize_metrics") else {}
         extra["v_first"] = self.v_first
         extra["edited_views"] = len(self.edited_views)
