@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
-from gs_regional.geometry.neighbors import within_radius
+from gs_regional.geometry.neighbors import quantile_box, within_radius
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh
 
@@ -94,9 +94,7 @@ def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: 
         return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
     # The box of the 2%-98% quantiles per axis: one stray selected Gaussian must not set the size
     # (the donut add's selection: a single outlier made the diagonal 0.156 instead of 0.096).
-    n = region_means.shape[0]
-    lo = torch.kthvalue(region_means, max(1, int(0.02 * n)), dim=0).values
-    hi = torch.kthvalue(region_means, max(1, min(n, int(0.98 * n) + 1)), dim=0).values
+    lo, hi = quantile_box(region_means, 0.02)
     radius = max_distance * float((hi - lo).norm())
     return within_radius(points, region_means, radius)
 

@@ -19,6 +19,18 @@ import torch
 
 
 
+def column_quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    """Per-column q-quantile of (N, D) by order statistic (torch.quantile refuses > 16M entries)."""
+    k = min(max(int(round(q * (x.shape[0] - 1))) + 1, 1), x.shape[0])
+    return x.kthvalue(k, dim=0).values
+
+
+def quantile_box(points: torch.Tensor, q: float = 0.02) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(lo, hi): the box of the q and 1 - q quantiles of (N, D) points per axis, which a few
+    stray points cannot stretch as they do the min-max box."""
+    return column_quantile(points, q), column_quantile(points, 1 - q)
+
+
 def morton_order(points: torch.Tensor) -> torch.Tensor:
     """Permutation sorting points along a Z-order curve (10 bits per axis)."""
     lo, hi = points.min(0).values, points.max(0).values

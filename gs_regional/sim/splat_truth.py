@@ -36,6 +36,7 @@ from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.loaders import load_cameras
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.geometry.neighbors import quantile_box
 from gs_regional.registry import register
 from gs_regional.sim.scene import _cov_to_gaussian, _Ellipsoid, _sample_ellipsoid, look_at
 from gs_regional.sim.truth import GroundTruth
@@ -54,19 +55,13 @@ def _unit(v, what: str) -> torch.Tensor:
     return v / v.norm()
 
 
-def _column_quantiles(x: torch.Tensor, q: float) -> torch.Tensor:
-    """Per-column q-quantile of (N, D) by order statistic (torch.quantile refuses > 16M entries)."""
-    k = min(max(int(round(q * (x.shape[0] - 1))) + 1, 1), x.shape[0])
-    return x.kthvalue(k, dim=0).values
-
-
 def object_frame(model: GaussianModel) -> Tuple[torch.Tensor, float]:
     """(centre (3,), radius) of the object: middle and half diagonal of the 2%-98% quantile box
     of the opaque Gaussians' positions (all Gaussians if none is opaque)."""
     means = model.means.detach()
     opaque = model.opacities.detach() > OPAQUE
     pts = means[opaque] if int(opaque.sum()) >= 10 else means
-    lo, hi = _column_quantiles(pts, 0.02), _column_quantiles(pts, 0.98)
+    lo, hi = quantile_box(pts, 0.02)
     return ((lo + hi) / 2).float(), float((hi - lo).norm() / 2)
 
 
@@ -117,7 +112,7 @@ def select_top(model: GaussianModel, up: torch.Tensor, fraction: float) -> Tuple
     height = model.means.detach() @ up
     opaque = model.opacities.detach() > OPAQUE
     ref = height[opaque] if int(opaque.sum()) >= 10 else height
-    lo, hi = (float(_column_quantiles(ref[:, None], q)[0]) for q in (0.02, 0.98))
+    lo, hi = (float(x[0]) for x in quantile_box(ref[:, None], 0.02))
     cut = hi - fraction * (hi - lo)
     region = height > cut
     related = (height <= cut) & (height > cut - 0.5 * fraction * (hi - lo))

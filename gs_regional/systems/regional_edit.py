@@ -180,6 +180,8 @@ class RegionalEdit(EditSystemBase):
         need(r.cycles >= 1, "refine.cycles", "an integer >= 1", r.cycles)
         need(r.iterations_per_cycle >= 1, "refine.iterations_per_cycle", "an integer >= 1", r.iterations_per_cycle)
         need(r.m >= 0, "refine.m", "an integer >= 0 (views edited around each cycle's frontal view)", r.m)
+        need(0 <= r.composite_full_coverage <= 1, "refine.composite_full_coverage", "a fraction in [0, 1]",
+             r.composite_full_coverage)
         need(r.recolour_lr_scale >= 0, "refine.recolour_lr_scale", "a number >= 0", r.recolour_lr_scale)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
@@ -187,10 +189,10 @@ class RegionalEdit(EditSystemBase):
         if r.constant_t is not None:
             need(0 <= r.constant_t < n_t, "refine.constant_t", f"a timestep in [0, {n_t - 1}]", r.constant_t)
             return
-        for key, schedule in (("t_schedule", r.t_schedule), ("shape_t_schedule", r.shape_t_schedule)):
-            if schedule is None and key == "shape_t_schedule":
+        for key in ("t_schedule", "shape_t_schedule"):
+            if getattr(r, key) is None:  # shape_t_schedule only: t_schedule then serves every edit
                 continue
-            t = list(schedule)
+            t = list(getattr(r, key))
             if len(t) < r.cycles:
                 raise ConfigError(
                     f"system.refine.{key} has {len(t)} timesteps for {r.cycles} cycles; "
@@ -353,7 +355,7 @@ class RegionalEdit(EditSystemBase):
                 shows_change = "rejected" not in report and report["added"] > 0
                 if k == 0 or shows_change:  # a later view's rejected calibration is no evidence either way
                     found = (u, edited, params, report, d_new, disp)
-                if k == 0 and "rejected" in report or shows_change:
+                if (k == 0 and "rejected" in report) or shows_change:
                     break
             v, edited, params, report, d_new, disp = found
             report["views_checked"] = order[: k + 1]
