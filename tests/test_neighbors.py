@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gs_regional.edit.localize import expand_selection, knn_pool, neighbourhoods
-from gs_regional.geometry.neighbors import knn, within_radius
+from gs_regional.geometry.neighbors import knn, quantile_box, within_radius
 
 
 def _sq_dists(a, b):
@@ -116,3 +116,13 @@ def test_expand_selection_matches_brute_force():
     out = expand_selection(means, selected, 0.1)
     ref = selected | (_sq_dists(means, means[selected]) <= 0.01).any(1)
     assert torch.equal(out, ref) and (out & ~selected).any()
+
+
+def test_quantile_box_is_not_stretched_by_a_stray_point():
+    """The depth-initialization radius and the splat truths' object frame come from this box: one
+    stray point (a floater, a stray selected Gaussian) must not set it, as it sets the min-max box."""
+    pts = torch.rand(1000, 3, generator=torch.Generator().manual_seed(0))
+    stray = torch.cat([pts, torch.tensor([[50.0, -50.0, 50.0]])])
+    lo, hi = quantile_box(stray, 0.02)
+    assert torch.all(lo > 0.0) and torch.all(lo < 0.05) and torch.all(hi < 1.0) and torch.all(hi > 0.95)
+    assert torch.equal(torch.stack(quantile_box(stray, 0.0)), torch.stack([stray.min(0).values, stray.max(0).values]))

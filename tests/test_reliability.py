@@ -124,6 +124,8 @@ DOOR_CASES = [
      ["system.refine.t_schedule", "[0, 999]"]),
     ("shape_t_schedule too short", lambda t: ["system.refine.shape_t_schedule=[450,350]"],
      ["system.refine.shape_t_schedule", "2 timesteps for 3 cycles"]),
+    ("composite_full_coverage above 1", lambda t: ["system.refine.composite_full_coverage=2"],
+     ["system.refine.composite_full_coverage", "[0, 1]"]),
     ("localization timestep out of range", lambda t: ["system.localization.timestep=1000"],
      ["system.localization.timestep", "[0, 999]"]),
     ("name with ..", lambda t: ["name=../../escaped"], ["name='../../escaped'", "single folder name"]),
