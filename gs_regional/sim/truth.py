@@ -66,8 +66,17 @@ def camera_key(camera: Camera) -> Tuple:
 
 
 def camera_seed(camera: Camera) -> int:
-    """A stable 31-bit integer per camera (the same across processes), for per-view randomness."""
-    return zlib.crc32(repr(camera_key(camera)).encode()) & 0x7FFFFFFF
+    """A stable 31-bit integer per camera, for per-view randomness: the same across processes,
+    resolutions and CPUs. Named cameras (every loader and the synthetic scene name theirs) are
+    keyed by name alone. Never by float bits: a pose computed on another CPU differs in the last
+    bit, which flips a rounded digit now and then and with it the whole hash, so that view drew
+    other noise on another machine (the demo's mask IoU moved by 0.04). An unnamed camera falls
+    back to its pose rounded to 1e-3, coarse enough that such a flip is rare."""
+    if camera.image_name:
+        key = ("name", camera.image_name)
+    else:
+        key = ("pose",) + tuple(round(float(v), 3) + 0.0 for v in camera.world_to_camera.detach().cpu().flatten())
+    return zlib.crc32(repr(key).encode()) & 0x7FFFFFFF
 
 
 def camera_for_image(camera: Camera, height: int, width: int, who: str) -> Camera:

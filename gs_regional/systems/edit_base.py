@@ -159,8 +159,25 @@ class EditSystemBase(GaussianSystem):
         self.check_scene()
         t0 = time.perf_counter()
         with torch.no_grad():
-            self._source_renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
+            renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
+            self._source_renders = [self.as_image(r, "the source renders") for r in renders]
         self.add_time("source_renders", time.perf_counter() - t0)
+
+    def as_image(self, render: torch.Tensor, what: str) -> torch.Tensor:
+        """A render as the 2D priors take images: in [0, 1]. A splat fitted to photos renders
+        above 1 here and there (view-dependent colour overshoots), which a display clamps too;
+        pixels that leave the range by more than a level of 8-bit colour are counted
+        (metrics.json `count_render_pixels_clamped`) and said once per kind of render."""
+        lo, hi = (float(v) for v in torch.aminmax(render.detach()))
+        if lo < -1.0 / 255 or hi > 1 + 1.0 / 255:
+            n = int(((render < -1.0 / 255) | (render > 1 + 1.0 / 255)).any(-1).sum())
+            self.counts["render_pixels_clamped"] = self.counts.get("render_pixels_clamped", 0) + n
+            said = self.__dict__.setdefault("_clamp_said", set())
+            if what not in said:
+                said.add(what)
+                log.info("%s leave [0, 1] (values in [%.3g, %.3g]), as renders of a splat fitted to photos do: "
+                         "clamped where they feed the 2D editor and the depth estimator", what, lo, hi)
+        return render.clamp(0, 1)
 
     @property
     def source_renders(self) -> List[torch.Tensor]:

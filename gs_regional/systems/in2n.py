@@ -52,7 +52,7 @@ class In2N(EditSystemBase):
             u = float(torch.rand((), generator=gen))
             t = int((cfg.t_min + (cfg.t_max - cfg.t_min) * u) * cfg.num_train_timesteps)
             with torch.no_grad():
-                current = self.render_view(j)["rgb"].clamp(0, 1)
+                current = self.as_image(self.render_view(j)["rgb"], "the current renders")
                 edited = self.guidance.edit(
                     current[None], self.source_renders[j][None], cfg.prompt, t_start=t, seed=cfg.seed + step, cameras=[scene.cameras[j]]
                 )[0]

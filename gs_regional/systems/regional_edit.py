@@ -428,7 +428,7 @@ class RegionalEdit(EditSystemBase):
         to_edit = [j for j in views if not (cycle == 0 and j == self.v_first)]
         edited = {}
         if to_edit:
-            current = torch.stack([self.render_view(j)["rgb"].clamp(0, 1) for j in to_edit])
+            current = torch.stack([self.as_image(self.render_view(j)["rgb"], "the current renders") for j in to_edit])
             out = self.guidance.edit(
                 current, torch.stack([self.source_renders[j] for j in to_edit]), cfg.prompt,
                 t_start=self.start_timestep(cycle), seed=[self.view_seed(cycle, j) for j in to_edit],
