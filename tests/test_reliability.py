@@ -451,3 +451,4 @@ def test_first_edit_outside_the_localized_region_stops_with_the_source_unchanged
 def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     m = metrics(reference["trial"])
     assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5
+    assert m["source_deleted"] == 0  # an edit that removes nothing keeps every source Gaussian

@@ -127,7 +127,8 @@ def localize_gaussians(
     * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
       rarely seen Gaussians follow their neighbourhood.
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
-    `PixelWeights` of the cameras, to render selections back without new renders}.
+    `PixelWeights` of the cameras, to render selections back without new renders, "seen": (N,)
+    each Gaussian's rendering weight summed over the views, in pixels}.
     """
     views = view_weights(model, renderer, cameras)
     num, den = mask_votes(views, masks)
@@ -152,7 +153,7 @@ def localize_gaussians(
             weights = mask_agreement(views, masks, selected) ** agreement_power
             if float(weights.sum()) <= 0:
                 break
-    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views}
+    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": den.sum(0)}
 
 
 def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float) -> torch.Tensor:

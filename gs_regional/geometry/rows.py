@@ -200,3 +200,27 @@ def source_rows(model: GaussianModel, selected: torch.Tensor, n_source: int) -> 
     out = torch.zeros(n_source, dtype=torch.bool, device=model.means.device)
     out[index] = True
     return out
+
+
+@torch.no_grad()
+def spare_last_descendants(model: GaussianModel, prune: torch.Tensor, removed: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """`prune` (N,) bool without the rows that would leave a source row with no descendant: for
+    each source row all of whose rows are pruned or `removed` (e.g. split parents, which their
+    children replace), the most opaque of its pruned rows is kept. So an edit never deletes a
+    Gaussian of the user's scene by densifying it and then pruning all of what it became."""
+    src = model.source_index
+    has = src >= 0
+    if not bool((prune & has).any()):
+        return prune
+    size = int(src[has].max()) + 1
+    gone = prune | removed if removed is not None else prune
+    total = torch.bincount(src[has], minlength=size)
+    dropped = torch.bincount(src[has & gone], minlength=size)
+    orphaned = (total > 0) & (dropped == total)
+    candidates = prune & has & orphaned[src.clamp_min(0)]
+    if not bool(candidates.any()):
+        return prune
+    opacity = model.opacities.detach()
+    best = torch.full((size,), -1.0, device=opacity.device, dtype=opacity.dtype)
+    best = best.scatter_reduce(0, src[candidates], opacity[candidates], reduce="amax")
+    return prune & ~(candidates & (opacity == best[src.clamp_min(0)]))

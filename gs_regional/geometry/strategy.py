@@ -51,6 +51,10 @@ class DensifyStrategy:
     # Clone and split children get at least this generation (an edit's 1: they count as Gaussians
     # the edit added, like those from depth, and may be pruned as such); 0: they inherit their parent's.
     child_generation: int = 0
+    # Prune only rows of generation > 0 (the ones an edit added): an edit keeps every Gaussian of
+    # the user's scene, however transparent (a trained splat holds many near-transparent ones,
+    # which the opacity prune of 3DGS's training would delete). False: prune any allowed row.
+    prune_only_added: bool = False
 
     def check(self, where: str = "densify") -> None:
         """Raise a ConfigError naming the key (`where`.<key>) for impossible settings."""
@@ -202,6 +206,9 @@ class DensifyStrategy:
         if allowed is not None:
             crit &= allowed
         crit &= ~split_parent
+        if self.prune_only_added:
+            crit &= model.generation > 0
+            crit = rows.spare_last_descendants(model, crit, removed=split_parent)
         rows.keep(model, ~(crit | split_parent), optimizer)
         reset_stats(model)
         return {"cloned": int(ci.numel()), "split": int(si.numel()), "pruned": int(crit.sum())}

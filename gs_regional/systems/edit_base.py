@@ -278,7 +278,10 @@ class EditSystemBase(GaussianSystem):
         if self.n_source + added - pruned != after:
             self.warn(f"Gaussian counts do not add up: {self.n_source} before + {added} added - {pruned} pruned "
                       f"!= {after} after")
-        out: Dict[str, object] = {"gaussians_added": added, "gaussians_pruned": pruned}
+        # Source rows no output row descends from (a split keeps its children's source index).
+        kept = self.geometry.source_index[self.geometry.source_index >= 0].unique().numel()
+        out: Dict[str, object] = {"gaussians_added": added, "gaussians_pruned": pruned,
+                                  "source_deleted": self.n_source - int(kept)}
         gt = self.scene.ground_truth
         if gt is not None:
             out["true_gaussians_added"] = len(gt.edited) - len(gt.source)

@@ -27,6 +27,7 @@ from gs_regional.systems.edit_base import EditSystemBase
 log = logging.getLogger(__name__)
 
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
+SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
 @dataclass
@@ -138,7 +139,7 @@ class RegionalEdit(EditSystemBase):
         densify: DensifyStrategy = field(
             default_factory=lambda: DensifyStrategy(
                 start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000,
-                child_generation=1, grad_threshold=5e-4,
+                child_generation=1, grad_threshold=5e-4, prune_only_added=True,
             )
         )
 
@@ -260,7 +261,14 @@ class RegionalEdit(EditSystemBase):
         self.masks2d = masks
         self.add_time("localize", time.perf_counter() - t0)
         if self.scene.ground_truth is not None:
-            self.localize_metrics.update(mask_metrics(self.source_selection.cpu(), self.scene.ground_truth.region.cpu()))
+            truth = self.scene.ground_truth.region.cpu()
+            self.localize_metrics.update(mask_metrics(self.source_selection.cpu(), truth))
+            if masks is not None:
+                # The same over the Gaussians the localization views see (0.01 px of weight or
+                # more): no localizer can find the others, and they would skew the figure.
+                seen = lifted["seen"].cpu() >= SEEN_MIN_WEIGHT
+                self.localize_metrics["mask_iou_seen"] = mask_metrics(self.source_selection.cpu()[seen], truth[seen])["mask_iou"]
+                self.localize_metrics["region_unseen"] = int((truth & ~seen).sum())
         # The selection rendered back into each view, from the lift's kept pixel weights when there
         # was a lift (no new renders); initialization reuses these masks.
         weights = lifted["views"] if masks is not None else None
@@ -544,7 +552,7 @@ class RegionalEdit(EditSystemBase):
         if not r.prune_added:
             return 0
         cams = [self.scene.cameras[i].to(self.device) for i in self.scene.train_indices]
-        useless = useless_added(g, self.renderer, cams, r.prune_min_weight, r.prune_min_opacity)
+        useless = rows.spare_last_descendants(g, useless_added(g, self.renderer, cams, r.prune_min_weight, r.prune_min_opacity))
         n = int(useless.sum())
         if n:
             rows.keep(g, ~useless, self.optimizers().optimizer)
