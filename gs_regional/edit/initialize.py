@@ -57,10 +57,13 @@ def median_filter(x: torch.Tensor, k: int) -> torch.Tensor:
     return p.unfold(2, k, 1).unfold(3, k, 1).reshape(*x.shape, k * k).median(-1).values
 
 
-def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Tensor,
+                 max_gain: Optional[float] = None) -> torch.Tensor:
     """Per-channel gain and offset fitted (least squares on `pixels`) to map `image` onto
     `reference`: a full 2D edit re-generates the whole view and shifts its tone, which is not a
-    change of the region."""
+    change of the region. `max_gain`: the gain is kept within [1 / max_gain, max_gain] (and the
+    offset fitted for it), for pixels whose narrow range of colours could not tell a gain that
+    holds for the whole view."""
     # Closed form in float64 (not a LAPACK solve, whose last bits can depend on memory alignment:
     # a view edited alone and in a batch must give the same target).
     x, y = image[pixels].double(), reference[pixels].double()  # (K, 3)
@@ -71,6 +74,8 @@ def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Ten
             gain, offset = 1.0, float((y[:, c] - x[:, c]).mean())
         else:
             gain = float((dx * dy).sum() / (dx * dx).sum())
+            if max_gain is not None:
+                gain = min(max(gain, 1.0 / max_gain), max_gain)
             offset = float(y[:, c].mean() - gain * x[:, c].mean())
         out[..., c] = image[..., c] * gain + offset
     return out.clamp(0, 1)

@@ -479,7 +479,8 @@ class RegionalEdit(EditSystemBase):
             cam = self.scene.cameras[index].to(self.device)
             added = render_selection(self.geometry, self.renderer, cam, self.geometry.generation > 0)
         return composite_target(edited, self.source_renders[index], self.source_region(index), added,
-                                r.composite_dilate, r.composite_noise_sigmas, r.composite_full_coverage)
+                                r.composite_dilate, r.composite_noise_sigmas, r.composite_full_coverage,
+                                opaque=self.source_alpha(index) > 0.5)
 
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":
