@@ -6,7 +6,7 @@ from typing import Optional
 import torch
 
 from gs_regional.edit.initialize import match_colors
-from gs_regional.utils.image import dilate
+from gs_regional.utils.image import dilate, gaussian_blur
 
 
 # A regenerated view's tone drifts by a few percent; a larger gain fitted on the calm pixels comes
@@ -30,9 +30,28 @@ def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, 
     if int(fit.sum()) >= MIN_TONE_PIXELS:  # enough pixels to see what regenerating the view did to its tone
         edited = match_colors(edited, source, fit, max_gain=MAX_TONE_GAIN)
         calm = fit
-    change = (edited - source).abs().amax(-1)
+    change = regeneration_change(edited, source)
     threshold = max(noise_sigmas * 1.4826 * float(change[calm].median()), 1.0 / 255)
     return ((change - threshold) / threshold).clamp(0, 1), edited
+
+
+REGEN_BLURS = (0.5, 1.0, 1.5, 2.0)  # px: the detail a regenerated view may lose
+
+
+def regeneration_change(edited: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+    """(H, W): how far each pixel of `edited` is from the source as the editor may regenerate it.
+    A 2D editor redraws the whole view and loses fine detail everywhere (the VAE, the partial
+    denoise): against the sharp source, every textured pixel of a region the edit leaves alone
+    looks changed, its blurred copy became a target and the region's Gaussians drifted towards it
+    (sprinkles smeared). A pixel counts as changed by what neither the source nor a blurred source
+    (any of REGEN_BLURS) explains: a new colour or a new object differs from all of them. (The
+    blur cannot be estimated on the calm pixels: they are often untextured.)"""
+    change = (edited - source).abs().amax(-1)
+    channels = source.permute(2, 0, 1)
+    for sigma in REGEN_BLURS:
+        blurred = gaussian_blur(channels, sigma).permute(1, 2, 0)
+        change = torch.minimum(change, (edited - blurred).abs().amax(-1))
+    return change
 
 
 def edit_coverage(
