@@ -116,6 +116,115 @@ def test_each_floor_imports_only_from_below():
     assert not offenders, "\n".join(offenders)
 
 
+def _top_level_imports(body):
+    """The import statements a module runs when it is imported: its top level, including under
+    `if`/`try`/`with` (not inside functions or classes, nor under `if TYPE_CHECKING:`)."""
+    import ast
+
+    for node in body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        elif isinstance(node, ast.If):
+            if "TYPE_CHECKING" not in ast.unparse(node.test):
+                yield from _top_level_imports(node.body)
+            yield from _top_level_imports(node.orelse)
+        elif isinstance(node, ast.Try):
+            for block in (node.body, node.orelse, node.finalbody, *(h.body for h in node.handlers)):
+                yield from _top_level_imports(block)
+        elif isinstance(node, ast.With):
+            yield from _top_level_imports(node.body)
+
+
+def import_graph(top_level_only=True):
+    """{module: {imported gs_regional module: line}} of every module of gs_regional, from its source
+    (`from pkg import name` is an edge to `pkg.name` when that is a module, else to `pkg`)."""
+    import ast
+
+    modules = {}
+    for path in sorted((REPO / "gs_regional").rglob("*.py")):
+        parts = path.relative_to(REPO).with_suffix("").parts
+        is_package = parts[-1] == "__init__"
+        modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    graph = {}
+    for name, (path, is_package) in modules.items():
+        tree = ast.parse(path.read_text())
+        nodes = _top_level_imports(tree.body) if top_level_only else (
+            n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+        package = name if is_package else name.rpartition(".")[0]
+        edges = graph[name] = {}
+        for node in nodes:
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                base = node.module or ""
+                if node.level:  # relative: from the package, up level - 1
+                    up = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join(up + ([node.module] if node.module else []))
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+            for target in targets:
+                if target in modules and target != name:
+                    edges.setdefault(target, node.lineno)
+    return graph
+
+
+def find_cycle(graph):
+    """One import cycle of `graph` as [a, b, ..., a], or None."""
+    state, stack = {}, []
+
+    def visit(node):
+        state[node] = "open"
+        stack.append(node)
+        for nxt in graph.get(node, ()):
+            if state.get(nxt) == "open":
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = "done"
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = visit(node)
+            if found:
+                return found
+    return None
+
+
+def _describe_cycle(graph, cycle):
+    return " -> ".join(cycle) + "  (" + "; ".join(
+        f"{a} imports {b} at line {graph[a][b]}" for a, b in zip(cycle, cycle[1:])) + ")"
+
+
+def test_find_cycle_names_the_cycle():
+    graph = {"a": {"b": 1}, "b": {"c": 2}, "c": {"a": 3}, "d": {"a": 4}}
+    assert find_cycle(graph) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b": 1}, "b": {}}) is None
+
+
+def test_no_import_cycles_in_the_package():
+    """Module-level imports of gs_regional form no cycle (a cycle makes a module's import depend
+    on which module of the cycle was imported first)."""
+    graph = import_graph(top_level_only=True)
+    assert "gs_regional.launch.modes" in graph["gs_regional.launch.run"]  # the graph sees imports at all
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle: " + _describe_cycle(graph, cycle)
+
+
+def test_launch_flows_one_way():
+    """Inside gs_regional.launch not even the imports inside functions form a cycle: cli parses and
+    imports run, run executes and never imports cli (what both need is in modes.py)."""
+    graph = import_graph(top_level_only=False)
+    launch = {m: {t: line for t, line in edges.items() if t.startswith("gs_regional.launch")}
+              for m, edges in graph.items() if m.startswith("gs_regional.launch")}
+    assert "gs_regional.launch.run" in launch["gs_regional.launch.cli"]
+    assert "gs_regional.launch.cli" not in launch["gs_regional.launch.run"]
+    cycle = find_cycle(launch)
+    assert cycle is None, "import cycle in gs_regional.launch: " + _describe_cycle(launch, cycle)
+
+
 def test_unknown_name_mentions_modules_that_failed_to_import():
     note_import_error("plugin custom/broken.py", "ModuleNotFoundError: No module named 'nope'")
     try:

@@ -1,9 +1,12 @@
 """launch.py end to end, with a tiny system and datamodule that a plugin written by the test
 registers (independent of the real systems and datamodule)."""
 import csv
+import errno
 import glob
+import io
 import logging
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +17,8 @@ import torch
 import yaml
 
 from gs_regional.launch import load_plugins, main
+from gs_regional.launch.callbacks import StageProgressBar, StageProgressLines, progress_callback
+from gs_regional.launch.checkpoints import DiskFullError, load_checkpoint_file, save_atomic
 from gs_regional.registry import note_import_error
 
 REPO = Path(__file__).resolve().parents[1]
@@ -173,7 +178,8 @@ def test_train_writes_the_trial_layout(setup_dir, capsys):
     assert os.path.isfile(os.path.join(trial, "save", "final.png"))
     assert open(os.path.join(trial, "save", "metrics.json")).read().count('"updates": 5') == 1
     out = capsys.readouterr().out
-    assert "phase 1" in out and "phase 2" in out and "5/5" in out  # the bar shows the stage and steps
+    assert "\r" not in out  # captured output is no terminal: lines, not a bar's redraws
+    assert "phase 1" in out and "phase 2: 5/5 steps (100%)" in out  # the stage and the steps
 
 
 def test_existing_trial_dir_is_never_overwritten(setup_dir):
@@ -308,3 +314,113 @@ def test_launch_py_subprocess_exit_code(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "error:" in proc.stderr and "'sytem_type' (did you mean 'system_type'?)" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+# ----- progress ----------------------------------------------------------------------------------
+PROGRESS_LINE = re.compile(r"(?P<stage>.+): (?P<done>\d+)/(?P<total>\d+) steps \((?P<pct>\d+)%\), \d\d:\d\d")
+
+
+def test_progress_is_a_line_per_stage_and_per_tenth_when_not_a_terminal(setup_dir, capsys):
+    """In a log file (captured output is no terminal either) progress is whole lines: one when the
+    stage changes (every 3 steps here), one at each tenth of the steps, no carriage returns."""
+    assert run(setup_dir, "--train", "system.max_steps=40", name="lines", progress=True) == 0
+    captured = capsys.readouterr()
+    assert "\r" not in captured.out + captured.err
+    lines = [m.groupdict() for m in map(PROGRESS_LINE.fullmatch, captured.out.splitlines()) if m]
+    assert lines[0] == {"stage": "start", "done": "0", "total": "40", "pct": "0"}
+    assert lines[-1] == {"stage": "phase 14", "done": "40", "total": "40", "pct": "100"}
+    stages = [line["stage"] for line in lines[1:]]
+    assert list(dict.fromkeys(stages)) == [f"phase {i}" for i in range(1, 15)]  # each stage, in order
+    tenths = {int(line["done"]) * 10 // 40 for line in lines}
+    assert tenths == set(range(11))  # every tenth of the run has its line
+    assert len(lines) <= 1 + 14 + 10  # and nothing else: one per stage change or tenth
+
+
+def test_progress_disabled_writes_no_progress(setup_dir, capsys):
+    assert run(setup_dir, "--train", "system.max_steps=4", name="quiet", progress=False) == 0
+    out = capsys.readouterr().out
+    assert not any(PROGRESS_LINE.fullmatch(line) for line in out.splitlines()), out
+    assert out.strip().splitlines()[-1].startswith("results: ")
+
+
+def test_progress_is_a_bar_on_a_terminal_only():
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    assert isinstance(progress_callback(Terminal()), StageProgressBar)
+    assert isinstance(progress_callback(io.StringIO()), StageProgressLines)
+
+
+# ----- a full disk -------------------------------------------------------------------------------
+TORCH_FULL_DISK = "[enforce fail at inline_container.cc:672] . unexpected pos 9472 vs 9360"
+
+
+def _save_fails_from_call(n, error):
+    """torch.save that writes the first n - 1 checkpoints, then half of one and raises `error`."""
+    real_save, calls = torch.save, []
+
+    def save(obj, f, *args, **kwargs):
+        calls.append(1)
+        if len(calls) < n:
+            return real_save(obj, f, *args, **kwargs)
+        f.write(b"PK\x03\x04half a checkpoint")
+        raise error
+
+    return save
+
+
+def test_full_disk_during_a_checkpoint_is_one_line_and_keeps_the_last_one(setup_dir, monkeypatch, capsys):
+    monkeypatch.setattr(torch, "save", _save_fails_from_call(2, RuntimeError(TORCH_FULL_DISK)))
+    assert run(setup_dir, "--train", "system.max_steps=5", name="full-disk") == 2  # saves at steps 2, 4, 5
+    monkeypatch.undo()
+    (trial,) = trials(setup_dir, "full-disk")
+    ckpt = os.path.join(trial, "ckpts", "last.ckpt")
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"error: checkpoint {ckpt} could not be written: the disk is full (no space left on device")
+    assert last.endswith(f"free some space, then resume={ckpt}")
+    assert os.listdir(os.path.dirname(ckpt)) == ["last.ckpt"]  # nothing half-written left
+    assert final_x(trial)[0] == 2  # the checkpoint before the full disk, complete
+
+
+def test_full_disk_at_the_first_checkpoint_leaves_nothing(setup_dir, monkeypatch, capsys):
+    monkeypatch.setattr(torch, "save", _save_fails_from_call(1, OSError(errno.ENOSPC, "No space left on device")))
+    assert run(setup_dir, "--train", "system.max_steps=5", name="full-disk-first") == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert re.fullmatch(r"error: checkpoint \S+/ckpts/last\.ckpt could not be written: the disk is full "
+                        r"\(no space left on device, .* free in \S+/ckpts\); nothing half-written is left; "
+                        r"free some space and run again", last), last
+    # No checkpoint was written: the trial dir goes, as after any error before the first one.
+    assert trials(setup_dir, "full-disk-first") == []
+    assert not list((setup_dir / "outputs").rglob("*.tmp"))
+
+
+def test_save_atomic_on_a_full_disk(tmp_path, monkeypatch):
+    path = tmp_path / "ckpts" / "last.ckpt"
+    save_atomic({"state_dict": {"x": torch.ones(3)}}, path)
+    real_save = torch.save
+    cases = [RuntimeError(TORCH_FULL_DISK),
+             RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed"),
+             OSError(errno.EDQUOT, "Disk quota exceeded")]
+    for error in cases:
+        monkeypatch.setattr(torch, "save", _save_fails_from_call(1, error))
+        with pytest.raises(DiskFullError) as e:
+            save_atomic({"state_dict": {"x": torch.zeros(3)}}, path)
+        assert str(path) in str(e.value) and "the disk is full" in str(e.value) and e.value.__cause__ is error
+        assert os.listdir(path.parent) == ["last.ckpt"]
+    assert "disk quota exceeded" in str(e.value)
+    if os.path.exists("/dev/full"):  # what torch really raises when the disk takes no more
+        def save_to_full_disk(obj, f, *args, **kwargs):
+            with open("/dev/full", "wb") as full:
+                real_save(obj, full, *args, **kwargs)
+
+        monkeypatch.setattr(torch, "save", save_to_full_disk)
+        with pytest.raises(DiskFullError, match="no space left on device"):
+            save_atomic({"state_dict": {"x": torch.zeros(100_000)}}, path)
+    monkeypatch.setattr(torch, "save", _save_fails_from_call(1, RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="^a bug$"):  # other failures stay what they are
+        save_atomic({"state_dict": {}}, path)
+    monkeypatch.undo()
+    assert torch.equal(load_checkpoint_file(path)["state_dict"]["x"], torch.ones(3))  # the first, intact

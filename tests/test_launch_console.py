@@ -1,6 +1,6 @@
 """What a user sees on the console: one-line errors for bad input files (exit 2, no trial dir
-left behind, a traceback with --debug), a quiet run with one progress bar, and the end-of-run
-summary whose paths exist."""
+left behind, a traceback with --debug), a quiet run whose progress is whole lines when the output
+is no terminal, and the end-of-run summary whose paths exist."""
 import json
 import os
 import re
@@ -89,10 +89,12 @@ def test_bad_input_file_is_one_line_and_leaves_no_trial_dir(case, tmp_path, caps
 
 def run_launch(*args, timeout=600):
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
-    proc = subprocess.run([sys.executable, str(ROOT / "launch.py"), *args], capture_output=True, text=True,
+    # Bytes, decoded here: text mode would turn carriage returns into newlines.
+    proc = subprocess.run([sys.executable, str(ROOT / "launch.py"), *args], capture_output=True,
                           timeout=timeout, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc.stdout, proc.stderr
+    stdout, stderr = proc.stdout.decode(), proc.stderr.decode()
+    assert proc.returncode == 0, stderr[-3000:]
+    return stdout, stderr
 
 
 LIGHTNING_NOISE = ("Tip:", "Trainable params", "GPU available", "TPU available", "Seed set", "val_dataloader",
@@ -107,10 +109,17 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
     assert stderr.strip().splitlines() == [f"trial dir: {trial}"], stderr
     for noise in LIGHTNING_NOISE:
         assert noise not in stdout + stderr, noise
-    # One progress bar, named after the stages.
-    bar, summary = stdout.rsplit("\n\n", 1)  # text mode reads the bar's carriage returns as newlines
-    assert "Epoch 0" not in bar and "Training" not in bar
-    assert bar.splitlines()[-1].startswith("refine 3/3: 100%") and "30/30" in bar.splitlines()[-1]
+    # Progress, named after the stages: whole lines (the output is no terminal), a line when a
+    # stage is seen to start and one at each tenth of the steps, never a carriage return.
+    assert "\r" not in stdout + stderr
+    progress, summary = stdout.rsplit("\n\n", 1)
+    lines = [re.fullmatch(r"(.+): (\d+)/30 steps \((\d+)%\), \d\d:\d\d", line) for line in progress.splitlines()]
+    assert all(lines), progress
+    stages = list(dict.fromkeys(m.group(1) for m in lines))
+    # (localize and initialize are seen at the checkpoints that end them, output at the last one)
+    assert stages == ["start", "localize", "initialize", "refine 1/3", "refine 2/3", "refine 3/3", "output"], progress
+    assert {int(m.group(2)) * 10 // 30 for m in lines} == set(range(11))  # each tenth of the steps
+    assert len(lines) <= len(stages) + 11 and lines[-1].group(1, 2) == ("output", "30")
 
     lines = summary.strip().splitlines()
     assert lines[-1] == f"results: {trial}"

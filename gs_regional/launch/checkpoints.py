@@ -4,6 +4,7 @@ resume checked before the run touches the trial: the file loads, and the config 
 with is compared with the one given now."""
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import shutil
@@ -36,6 +37,63 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be used; the message names the file (and the previous one)."""
 
 
+class DiskFullError(OSError):
+    """A checkpoint that could not be written for lack of space; the message names the file."""
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(errno.ENOSPC, message, path)
+        self.message = message
+
+    def __str__(self) -> str:  # OSError's would read "[Errno 28] ..."
+        return self.message
+
+
+# What torch.save raises when a write fails half-way (the disk filled up): its zip writer checks
+# the position after each record ("unexpected pos"), or reports the failed write itself.
+_TORCH_WRITE_FAILURES = ("unexpected pos", "no space left", "file write failed")
+
+
+def disk_full_reason(e: BaseException) -> Optional[str]:
+    """Why the disk took no more, if `e` (or an exception it was raised from or while handling)
+    says so: OSError ENOSPC / EDQUOT, or torch's RuntimeError of a failed write; else None."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno == errno.EDQUOT:
+            return "disk quota exceeded"
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+            return "no space left on device"
+        if isinstance(e, RuntimeError) and any(m in str(e).lower() for m in _TORCH_WRITE_FAILURES):
+            return "no space left on device"
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _free_space(folder: str) -> str:
+    """'1.2 MB free in <folder>', for the message of a full disk."""
+    try:
+        free = float(shutil.disk_usage(folder).free)
+    except OSError as e:
+        return f"free space in {folder} unknown: {e}"
+    unit = "B"
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if free < 1024 or unit == "TB":
+            break
+        free /= 1024
+    return f"{free:.0f} {unit} free in {folder}" if unit == "B" else f"{free:.1f} {unit} free in {folder}"
+
+
+def disk_full_error(path: str, reason: str) -> DiskFullError:
+    """The one-line error of a checkpoint `path` not written for lack of space, saying what is kept."""
+    folder = os.path.dirname(path)
+    if os.path.isfile(path):
+        then = f"the last complete checkpoint is kept: free some space, then resume={path}"
+    else:
+        then = "free some space and run again"
+    return DiskFullError(path, f"checkpoint {path} could not be written: the disk is full ({reason}, "
+                               f"{_free_space(folder)}); nothing half-written is left; {then}")
+
+
 def previous_path(path: os.PathLike | str) -> Path:
     return Path(f"{os.fspath(path)}{PREVIOUS_SUFFIX}")
 
@@ -57,7 +115,8 @@ def save_atomic(checkpoint: Dict[str, Any], path: os.PathLike | str) -> None:
     """torch.save to a temporary file beside `path`, fsync it, keep the current `path` as
     `<path>.previous`, then rename the new file onto `path`. A kill at any moment leaves `path`
     either the old complete checkpoint or the new complete one (a rename within one directory is
-    atomic; a temporary file in $TMPDIR, on another file system, would be copied, not renamed)."""
+    atomic; a temporary file in $TMPDIR, on another file system, would be copied, not renamed).
+    A full disk removes the partial file and raises DiskFullError naming `path`."""
     path = os.path.abspath(os.fspath(path))
     folder = os.path.dirname(path)
     os.makedirs(folder, exist_ok=True)
@@ -76,10 +135,13 @@ def save_atomic(checkpoint: Dict[str, Any], path: os.PathLike | str) -> None:
             os.replace(prev_tmp, previous_path(path))
         os.replace(tmp, path)
         _fsync_dir(folder)
-    except BaseException:
+    except BaseException as e:
         for leftover in (tmp, tmp + PREVIOUS_SUFFIX):
             if os.path.exists(leftover):
                 os.remove(leftover)
+        reason = disk_full_reason(e) if isinstance(e, Exception) else None
+        if reason:
+            raise disk_full_error(path, reason) from e  # one line for the user; --debug shows torch's error
         raise
 
 

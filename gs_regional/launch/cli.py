@@ -1,5 +1,6 @@
 """The command line of `launch.py`: arguments, logging, and mistakes turned into one line
-`error: ...` with exit code 2 (`--debug` shows the traceback instead)."""
+`error: ...` with exit code 2 (`--debug` shows the traceback instead). It parses; run.py executes
+(cli imports run, never the other way; what both need is in modes.py)."""
 from __future__ import annotations
 
 import argparse
@@ -8,14 +9,7 @@ from typing import Any, List, Optional, Sequence
 
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import setup_logging
-
-MODES = ("train", "validate", "test", "export")
-EXPORT_CHOICES = ("scene", "region")
-
-
-def run_mode(args: argparse.Namespace) -> str:
-    """The mode of parsed arguments: --train, --validate or --test, else --export."""
-    return next(m for m in MODES if getattr(args, m))
+from gs_regional.launch.modes import EXPORT_CHOICES, MODES
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,19 +9,20 @@ from gs_regional.registry import RegistryError
 
 
 def input_error_types() -> Tuple[Type[BaseException], ...]:
-    """The typed errors of the readers: each message names the file (or model) at fault."""
+    """The typed errors of the readers (and of a checkpoint written to a full disk): each message
+    names the file (or model) at fault."""
     from gs_regional.data.colmap import ColmapError
     from gs_regional.data.images import ImageLoadError
     from gs_regional.data.loaders import CameraLoadError
     from gs_regional.data.nerfstudio import TransformsError
     from gs_regional.data.points import PointsError
     from gs_regional.geometry.ply import PlyError
-    from gs_regional.launch.checkpoints import CheckpointError
+    from gs_regional.launch.checkpoints import CheckpointError, DiskFullError
     from gs_regional.utils.io import OverwriteError
     from gs_regional.utils.pretrained import PretrainedLoadError
 
     return (PlyError, ColmapError, TransformsError, CameraLoadError, ImageLoadError, PointsError,
-            PretrainedLoadError, OverwriteError, CheckpointError)
+            PretrainedLoadError, OverwriteError, CheckpointError, DiskFullError)
 
 
 def is_user_error(e: BaseException) -> bool:

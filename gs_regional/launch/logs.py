@@ -1,7 +1,8 @@
 """Console output of a run: quiet by default, everything with `--verbose` / `--debug`.
 
 Quiet: warnings and errors of every gs_regional module, the launcher's own few lines, the
-progress bar and the end-of-run summary. Lightning's info lines (seed, GPU/TPU availability,
+config's notes, the progress (a bar on a terminal, lines otherwise: callbacks.py) and the
+end-of-run summary. Lightning's info lines (seed, GPU/TPU availability,
 tips, "max_steps reached"), its model summary and known third-party warning noise are hidden.
 Log lines are written with `tqdm.write`, so they never break a progress bar.
 """
@@ -46,6 +47,8 @@ def setup_logging(verbose: bool) -> None:
     package = logging.getLogger("gs_regional")
     package.setLevel(logging.DEBUG if verbose else logging.WARNING)
     logging.getLogger("gs_regional.launch").setLevel(logging.DEBUG if verbose else logging.INFO)
+    # The config's notes say what the command line changed (keys dropped by a `*_type` switch).
+    logging.getLogger("gs_regional.config").setLevel(logging.DEBUG if verbose else logging.INFO)
     handler = next((h for h in package.handlers if isinstance(h, _ConsoleHandler)), None)
     if handler is None:
         handler = _ConsoleHandler()

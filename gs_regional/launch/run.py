@@ -15,20 +15,18 @@ import lightning
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 
-from gs_regional.config import ConfigError, load_config
+from gs_regional.config import ConfigError, load_config, unknown_key_message
 from gs_regional.launch.checkpoints import CONFIG_KEY, TrialCheckpointIO, check_resume_config, load_checkpoint_file
-from gs_regional.launch.cli import run_mode
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import filter_warnings
+from gs_regional.launch.modes import STAGES, run_mode
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
+from gs_regional.launch.sections import section_configs
 from gs_regional.launch.summary import RunInfo, print_summary
 from gs_regional.launch.trial import TrialLock, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
 from gs_regional.registry import find, load_builtins
 
 log = logging.getLogger(__name__)
-
-# The Lightning stage each mode runs (the argument of DataModule.setup).
-STAGES = {"train": "fit", "validate": "validate", "test": "test", "export": "predict"}
 
 
 def _check_keys(section: str, given: Dict[str, Any], target: Any, reserved: Sequence[str] = ()) -> None:
@@ -37,10 +35,8 @@ def _check_keys(section: str, given: Dict[str, Any], target: Any, reserved: Sequ
         if key in reserved:
             raise ConfigError(f"config key '{section}.{key}' is set by launch.py and cannot be configured")
         if key not in allowed:
-            raise ConfigError(
-                f"unknown config key '{section}.{key}': not an argument of {target.__qualname__}; "
-                f"allowed keys: {', '.join(sorted(allowed - set(reserved)))}"
-            )
+            raise ConfigError(unknown_key_message(f"{section}.{key}", allowed - set(reserved),
+                                                  f"the arguments of {target.__qualname__}"))
 
 
 def _container(node: Any, section: str) -> Dict[str, Any]:
@@ -121,7 +117,7 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
     load_builtins()
     load_plugins(args.custom_dir or custom_dir or default_custom_dir(), debug=args.debug)
 
-    cfg = load_config(args.config, overrides)
+    cfg = load_config(args.config, overrides, section_configs=section_configs)
     resume = cfg.resume
     if resume and not os.path.isfile(resume):
         raise ConfigError(f"resume checkpoint not found: {resume}")
@@ -189,9 +185,9 @@ def run_config(cfg: Any) -> Dict[str, Any]:
 
 
 def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool) -> "lightning.Trainer":
-    from gs_regional.launch.callbacks import StageProgressBar
+    from gs_regional.launch.callbacks import progress_callback
 
-    callbacks = [StageProgressBar()] if kw.get("enable_progress_bar", True) else []
+    callbacks = [progress_callback()] if kw.get("enable_progress_bar", True) else []
     if kw.get("enable_checkpointing", True):
         callback = checkpoint_callback(cfg, trial)
         callback.run_config = run_config(cfg)

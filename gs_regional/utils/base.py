@@ -17,7 +17,7 @@ class Configurable:
     cfg: Any
 
     def __init__(self, cfg: Any = None, where: str = "") -> None:
-        self.cfg = parse_structured(self.Config, cfg, where=where or type(self).__name__)
+        self.cfg = parse_structured(self.Config, cfg, where=where, label=type(self).__name__)
 
 
 class BaseModule(nn.Module):
@@ -31,7 +31,7 @@ class BaseModule(nn.Module):
 
     def __init__(self, cfg: Any = None, where: str = "") -> None:
         super().__init__()
-        self.cfg = parse_structured(self.Config, cfg, where=where or type(self).__name__)
+        self.cfg = parse_structured(self.Config, cfg, where=where, label=type(self).__name__)
 
 
 def component_name(obj: Any) -> str:
