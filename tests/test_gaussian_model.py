@@ -400,3 +400,30 @@ def test_optimizer_param_groups():
         m.optimizer_param_groups({"colour": 1.0})
     lr = LearningRates(quats=0.5)  # the dataclass the systems' `system.lr` parses into
     assert {g["name"]: g["lr"] for g in m.optimizer_param_groups(lr)}["quats"] == 0.5
+
+
+def test_added_only_parameters_train_on_added_rows_alone():
+    """An edit that may change the shape keeps the selected source Gaussians' place, size and
+    opacity (RegionalEdit's refine.source_fixed): their colours train, those parameters only on
+    the rows the edit added."""
+    from gs_regional.geometry import rows
+    from gs_regional.sim.scene import make_edit
+
+    model = make_edit("add").source
+    model.mask[:50] = True
+    n = model.num_gaussians
+    rows.append(model, {k: getattr(model, k).detach()[:10].clone() for k in
+                        ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")}, generation=1)
+    model.set_trainable_mask("editable")
+    model.set_added_only(["means", "quats", "log_scales", "opacity_logits"])
+    loss = sum((getattr(model, k) ** 2).sum() for k in ("means", "quats", "log_scales", "opacity_logits", "sh_dc"))
+    loss.backward()
+    for name in ("means", "quats", "log_scales", "opacity_logits"):
+        grad = getattr(model, name).grad.reshape(n + 10, -1)
+        assert not bool(grad[:n].any()) and bool(grad[n:].any(1).all()), name
+    assert bool(model.sh_dc.grad[:50].any(1).all()) and not bool(model.sh_dc.grad[50:n].any())
+    # the setting survives a checkpoint
+    state = model.get_extra_state()
+    assert state["added_only"] == ["means", "quats", "log_scales", "opacity_logits"]
+    with pytest.raises(ValueError, match="unknown parameters"):
+        model.set_added_only(["scales"])

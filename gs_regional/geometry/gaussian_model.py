@@ -22,7 +22,7 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Union
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -116,6 +116,7 @@ class GaussianModel(BaseModule):
         self.source_index = torch.arange(n)  # a new model is its own source
         self.source_path: Optional[str] = None  # the PLY this model was loaded from
         self._trainable_rule: Optional[str] = None  # None, EDITABLE or _ROWS (see set_trainable_mask)
+        self._added_only: Tuple[str, ...] = ()  # parameters only added rows train (set_added_only)
         self._grad_hooks: list = []
         if self.cfg.ply:
             self.load_ply(self.cfg.ply, drop_nonfinite=self.cfg.drop_nonfinite)
@@ -441,6 +442,15 @@ class GaussianModel(BaseModule):
             self.trainable = rows.clone()
             self._use_trainable_rule(_ROWS)
 
+    def set_added_only(self, names: Sequence[str]) -> None:
+        """Of the parameters `names`, only rows the edit added (generation > 0) train: the
+        source's rows keep them (on top of the trainable-row rule, which must be set)."""
+        unknown = sorted(set(names) - set(PARAM_NAMES))
+        if unknown:
+            raise ValueError(f"set_added_only: unknown parameters {unknown}; known: {', '.join(PARAM_NAMES)}")
+        self._added_only = tuple(names)
+        self._use_trainable_rule(self._trainable_rule)
+
     def _use_trainable_rule(self, rule: Optional[str]) -> None:
         for h in self._grad_hooks:
             h.remove()
@@ -458,22 +468,26 @@ class GaussianModel(BaseModule):
         return self.trainable
 
     def _register_grad_hooks(self) -> None:
-        def hook(grad: torch.Tensor) -> torch.Tensor:
-            rows = self.trainable_rows()
-            if rows is None:
-                return grad
-            if rows.shape[0] != grad.shape[0]:
-                raise RuntimeError(
-                    f"trainable rows ({rows.shape[0]}) do not match the {grad.shape[0]} Gaussians; "
-                    f"call set_trainable_mask again after changing the model outside gs_regional.geometry.rows"
-                )
-            keep = rows.to(grad.device).view(-1, *[1] * (grad.dim() - 1))
-            return grad.masked_fill(~keep, 0)  # masked_fill: a NaN gradient is zeroed too
+        def make_hook(added_only: bool):
+            def hook(grad: torch.Tensor) -> torch.Tensor:
+                rows = self.trainable_rows()
+                if rows is None:
+                    return grad
+                if rows.shape[0] != grad.shape[0]:
+                    raise RuntimeError(
+                        f"trainable rows ({rows.shape[0]}) do not match the {grad.shape[0]} Gaussians; "
+                        f"call set_trainable_mask again after changing the model outside gs_regional.geometry.rows"
+                    )
+                if added_only:
+                    rows = rows & (self.generation > 0)
+                keep = rows.to(grad.device).view(-1, *[1] * (grad.dim() - 1))
+                return grad.masked_fill(~keep, 0)  # masked_fill: a NaN gradient is zeroed too
+            return hook
 
         for name in PARAM_NAMES:
             p = getattr(self, name)
             if p.requires_grad:
-                self._grad_hooks.append(p.register_hook(hook))
+                self._grad_hooks.append(p.register_hook(make_hook(name in self._added_only)))
 
     def __getstate__(self):
         state = self.__dict__.copy()
@@ -493,6 +507,7 @@ class GaussianModel(BaseModule):
             "extra_dtypes": list(self.extra_dtypes),
             "source_path": self.source_path,
             "trainable_rule": self._trainable_rule,
+            "added_only": list(self._added_only),
         }
 
     def set_extra_state(self, state: dict) -> None:
@@ -503,6 +518,7 @@ class GaussianModel(BaseModule):
         rule = state.get("trainable_rule")
         if rule not in (None, EDITABLE, _ROWS):
             raise ValueError(f"GaussianModel checkpoint: unknown trainable-row rule {rule!r}")
+        self._added_only = tuple(state.get("added_only", ()))
         self._use_trainable_rule(rule)
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
