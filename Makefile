@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test truth-suite clean
 
 $(VENV)/.installed: setup.py
 	python3 -m venv $(VENV)
@@ -20,6 +20,12 @@ demo: install
 
 test: install
 	$(PY) -m pytest -q tests
+
+# Known edits drawn at random (scripts/truth_suite.py): a fresh seed each time, printed;
+# `make truth-suite SEED=N` redraws the cases of seed N.
+SEED ?=
+truth-suite: install
+	$(PY) scripts/truth_suite.py $(if $(SEED),--seed $(SEED))
 
 clean:
 	rm -rf $(VENV) outputs

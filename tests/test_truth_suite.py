@@ -1,0 +1,91 @@
+"""scripts/truth_suite.py: known edits drawn at random from a printed seed. The draw alone is
+checked for reproducibility and coverage; the 3-case quick run (synthetic scenes only, so it never
+needs ../shared/data) runs end to end and writes the JSON and the chart. The quick mode is a check
+of the script, not a measurement."""
+import json
+
+import truth_suite
+
+SEED = 11
+
+
+def test_the_same_seed_draws_the_same_cases():
+    assert truth_suite.draw(SEED, 24) == truth_suite.draw(SEED, 24)
+    assert truth_suite.draw(SEED, 3, quick=True) == truth_suite.draw(SEED, 3, quick=True)
+    assert truth_suite.draw(SEED, 24) != truth_suite.draw(SEED + 1, 24)
+
+
+def test_a_full_draw_covers_the_scenes_and_kinds():
+    cases = truth_suite.draw(12345, 24)
+    assert len(cases) == 24 and len({c["id"] for c in cases}) == 24
+    scenes = [c["scene"] for c in cases]
+    assert scenes.count("donut") == 4 and scenes.count("face") == 4
+    assert len({s for s in scenes if s.startswith("synthetic:")}) >= 5
+    for kind in truth_suite.KINDS:
+        assert sum(c["kind"] == kind for c in cases) == 6, kind
+    for scene in ("donut", "face"):
+        assert sorted(c["kind"] for c in cases if c["scene"] == scene) == sorted(truth_suite.KINDS)
+    for c in cases:
+        assert len(c["color"]) == 3 and all(0 <= v <= 1 for v in c["color"])
+        if c["kind"].startswith("add") and not c["native"]:
+            assert 1.2 <= c["region_radius"] <= 8.0
+            small = c["kind"] == "add_small"
+            assert (0.06 <= c["add_radius"] <= 0.10) if small else (0.15 <= c["add_radius"] <= 0.25)
+        if c["kind"] == "recolor_large" and c["scene"] == "donut":
+            assert c["select"] == "top" and 0.3 <= c["top_fraction"] <= 0.6
+
+
+def test_an_unseeded_draw_prints_its_seed_and_that_seed_redraws_it(capsys):
+    assert truth_suite.main(["--draw-only"]) == 0
+    first = capsys.readouterr().out.splitlines()
+    seed = int(first[0].split("seed: ")[1].split()[0])
+    assert truth_suite.main(["--draw-only", "--seed", str(seed)]) == 0
+    assert capsys.readouterr().out.splitlines() == first
+    assert [json.loads(line) for line in first[1:]] == truth_suite.draw(seed, 24)
+
+
+def test_targets_name_the_cases_that_miss_them():
+    def rec(i, kind, g, outside, stopped=None, added=0):
+        return {"id": f"c{i}", "kind": kind, "gain": g, "psnr_outside_vs_true_edit": outside, "psnr_unedited": 60.0,
+                "mask_iou": 0.95, "stopped": stopped, "source_deleted": 0, "gaussians_added": added,
+                "true_added": 100, "region_gaussians": 1000}
+
+    result = {name: (met, bad) for name, met, _, bad in truth_suite.targets([
+        rec(1, "recolor_small", 12.0, 55.0), rec(2, "add_small", -1.0, 44.0, added=300),
+        rec(3, "recolor_large", 11.0, 52.0, stopped="view_agreement", added=50)])}
+    assert result["gain > 0 dB, every case"] == (False, ["c2"])
+    assert result["median gain >= +6 dB"] == (True, [])
+    assert result["median gain of the recolours >= +10 dB"] == (True, [])
+    assert result["outside-footprint PSNR >= 45 dB, every case"] == (False, ["c2"])
+    assert result["median outside-footprint PSNR >= 50 dB"] == (True, [])
+    assert result["no stopped run"] == (False, ["c3"])
+    assert result["Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)"] == (False, ["c2", "c3"])
+
+
+def test_quick_run_writes_records_and_chart(tmp_path, capsys):
+    assert truth_suite.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert f"truth suite seed: {SEED}" in out and "targets:" in out and "| gain (dB) |" in out
+    payload = json.loads((tmp_path / "truth_suite.json").read_text())
+    assert payload["seed"] == SEED and payload["quick"] is True and payload["left_out"] == []
+    records = payload["records"]
+    drawn = truth_suite.draw(SEED, 3, quick=True)
+    assert [(r["id"], r["scene"], r["kind"]) for r in records] == [(c["id"], c["scene"], c["kind"]) for c in drawn]
+    for r in records:
+        assert not r.get("error"), r
+        assert r["scene"].startswith("synthetic:")
+        for key in truth_suite.METRIC_KEYS:
+            assert key in r, key
+        for key in ("psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
+                    "psnr_unedited", "mask_iou", "gaussians_added", "true_gaussians_added", "source_deleted",
+                    "unet_evals", "seconds_total"):
+            assert r[key] is not None, key
+        assert r["gain"] == r["psnr_region_vs_true_edit"] - r["psnr_region_source_vs_true_edit"]
+        assert r["true_gaussians_added"] == r["true_added"] and r["region_gaussians"] > 0 and r["prompt"]
+        assert r["unet_evals"] > 0 and r["wall_seconds"] > 0 and r["overrides"]
+    png = tmp_path / "truth_suite.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    # --replot redraws from the JSON alone
+    png.unlink()
+    assert truth_suite.main(["--replot", "--out", str(tmp_path)]) == 0
+    assert png.exists()
