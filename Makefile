@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 
-.PHONY: install demo test truth-suite clean
+.PHONY: install demo test truth-suite gpu-check clean
 
 $(VENV)/.installed: setup.py
 	python3 -m venv $(VENV)
@@ -26,6 +26,15 @@ test: install
 SEED ?=
 truth-suite: install
 	$(PY) scripts/truth_suite.py $(if $(SEED),--seed $(SEED))
+
+# First contact with a GPU (scripts/gpu_check.py): one table in under 10 minutes, written as JSON
+# (GPU_CHECK_OUT). Without CUDA it says so in one line and fails. gsplat (the `gsplat` extra of
+# setup.py) is installed here when it does not import; `make test` never installs it.
+GPU_CHECK_OUT ?= outputs/gpu_check/gpu_check.json
+gpu-check: install
+	@$(PY) scripts/gpu_check.py --require-cuda
+	@$(PY) -c "import gsplat" 2>/dev/null || $(PIP) install -q -e ".[gsplat]"
+	$(PY) scripts/gpu_check.py --out $(GPU_CHECK_OUT)
 
 clean:
 	rm -rf $(VENV) outputs

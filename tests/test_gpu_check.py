@@ -1,0 +1,304 @@
+"""scripts/gpu_check.py (`make gpu-check`) without a GPU: the one-line refusal, the runner (rows,
+failures, time limits, the budget), the table and JSON, and what of its checks runs on a CPU: the
+float16 / bfloat16 InstructPix2Pix path on the tiny models, `dtype: auto`, the render comparison."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
+
+import gpu_check
+from gs_regional.guidance.instructpix2pix import InstructPix2Pix
+from gs_regional.utils.pretrained import Pretrained, resolve_dtype
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "gpu_check.py"
+PROMPT = "give him a mustache"
+
+
+# --------------------------------------------------------------------------- without CUDA
+@pytest.mark.parametrize("extra", [[], ["--require-cuda"]])
+def test_without_cuda_says_so_in_one_line_and_fails(tmp_path, extra):
+    out = tmp_path / "gpu_check.json"
+    env = dict(os.environ, CUDA_VISIBLE_DEVICES="")  # no CUDA device, even on a GPU machine
+    done = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), *extra], capture_output=True, text=True,
+                          env=env, timeout=120, cwd=str(tmp_path))
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.splitlines() == [gpu_check.NO_CUDA_LINE]
+    assert gpu_check.NO_CUDA_LINE == (
+        "gpu-check: no CUDA device (torch.cuda.is_available() is False); nothing was checked")
+    assert not out.exists() and not (tmp_path / "outputs").exists()  # nothing was run or written
+
+
+def test_makefile_target():
+    text = (ROOT / "Makefile").read_text()
+    assert "\ngpu-check: install\n" in text and "scripts/gpu_check.py --require-cuda" in text
+    assert "\ntruth-suite: install\n" in text  # the other targets stay
+    test_recipe = text.split("\ntest: install\n")[1].split("\n\n")[0]
+    assert "gsplat" not in test_recipe and "pytest" in test_recipe  # `make test` never installs gsplat
+
+
+# --------------------------------------------------------------------------- the runner
+FAKE_CHECKS = """
+import os
+import time
+
+from gpu_check import CheckFailed, Skip
+
+
+def ok(ctx):
+    return {"seconds_s": 1.5, "count": 3, "_ctx": {"shared": "from ok"}}
+
+
+def reads_ctx(ctx):
+    return {"shared": ctx["shared"]}
+
+
+def raises(ctx):
+    raise RuntimeError("what went wrong first\\nthe last line of the error")
+
+
+def skips(ctx):
+    raise Skip("not on this machine")
+
+
+def fails(ctx):
+    raise CheckFailed("exit code 1: the run's last line")
+
+
+def out_of_tolerance(ctx):
+    return {"diff": 0.5, "_fail": "diff 0.5 > 0.001"}
+
+
+def sleeps(ctx):
+    time.sleep(120)
+
+
+def dies(ctx):
+    print("going down", flush=True)
+    os._exit(7)
+"""
+
+
+@pytest.fixture
+def fake(tmp_path):
+    path = tmp_path / "fake_checks.py"
+    path.write_text(textwrap.dedent(FAKE_CHECKS))
+    spec = importlib.util.spec_from_file_location("fake_checks", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def C(name, func, limit=60, **kw):
+    return gpu_check.Check(name, func, limit, f"the {name} check", **kw)
+
+
+def test_runner_records_every_outcome_and_goes_on(fake, tmp_path):
+    checks = [
+        C("ok", fake.ok), C("reads_ctx", fake.reads_ctx), C("raises", fake.raises), C("skips", fake.skips),
+        C("fails", fake.fails), C("out_of_tolerance", fake.out_of_tolerance), C("sleeps", fake.sleeps, limit=2),
+        C("dies", fake.dies), C("after_failure", fake.ok, needs=("raises",)), C("after_ok", fake.ok, needs=("ok",)),
+        C("two_gpus", fake.ok, min_gpus=2),
+    ]
+    ctx = {"gpus": 1}
+    rows = gpu_check.run_checks(checks, ctx, budget_s=300, log_dir=str(tmp_path / "logs"), echo=lambda s: None)
+    by = {r["name"]: r for r in rows}
+    assert [r["name"] for r in rows] == [c.name for c in checks]
+    assert by["ok"]["status"] == "ok" and by["ok"]["results"] == {"seconds_s": 1.5, "count": 3}
+    assert by["reads_ctx"]["results"] == {"shared": "from ok"}  # what a check hands on reaches the later ones
+    assert by["raises"]["status"] == "failed"
+    assert by["raises"]["reason"] == "RuntimeError: the last line of the error"
+    assert "Traceback" in Path(by["raises"]["log"]).read_text()  # the whole error is in its log
+    assert (by["skips"]["status"], by["skips"]["reason"]) == ("skipped", "not on this machine")
+    assert (by["fails"]["status"], by["fails"]["reason"]) == ("failed", "exit code 1: the run's last line")
+    assert by["out_of_tolerance"]["status"] == "failed" and by["out_of_tolerance"]["results"] == {"diff": 0.5}
+    assert by["out_of_tolerance"]["reason"] == "diff 0.5 > 0.001"
+    assert by["sleeps"]["status"] == "failed" and by["sleeps"]["reason"].startswith("timed out after 2 s")
+    assert by["sleeps"]["seconds"] < 30
+    assert by["dies"]["status"] == "failed" and by["dies"]["reason"].startswith("exit code 7: going down")
+    assert (by["after_failure"]["status"], by["after_failure"]["reason"]) == ("skipped", "needs 'raises', which failed")
+    assert by["after_ok"]["status"] == "ok"
+    assert (by["two_gpus"]["status"], by["two_gpus"]["reason"]) == ("skipped", "needs 2 GPUs; this machine has 1")
+
+
+def test_runner_skips_the_rest_when_the_budget_is_spent(fake, tmp_path, monkeypatch):
+    times = iter([0.0, 0.0, 95.0, 96.0])  # start; first check at 0 s; then the budget is nearly spent
+    checks = [C("first", fake.ok, limit=500), C("second", fake.ok), C("third", fake.ok)]
+    limits = []
+    real_run_check = gpu_check.run_check
+
+    def spy(check, ctx, limit_s, log_dir):
+        limits.append(limit_s)
+        return real_run_check(check, ctx, limit_s, log_dir)
+
+    monkeypatch.setattr(gpu_check, "run_check", spy)
+    rows = gpu_check.run_checks(checks, {}, budget_s=100, log_dir=str(tmp_path), clock=lambda: next(times),
+                                echo=lambda s: None)
+    assert limits == [100]  # a check's limit is its own or what is left of the budget, the smaller
+    assert [r["status"] for r in rows] == ["ok", "skipped", "skipped"]
+    assert rows[1]["reason"] == "the 100 s budget is spent (95 s used)"
+
+
+# --------------------------------------------------------------------------- table and JSON
+def fake_rows():
+    return [
+        {"name": "gsplat_vs_torch", "what": "w", "status": "ok", "seconds": 12.345, "log": "/x/logs/a.log",
+         "results": {"fwd_rgb_max_abs": 2.5e-06, "bwd_max_rel_of": "means", "gaussians": 50000, "finite": True,
+                     "trial": "/somewhere/runs/x"}, "reason": None},
+        {"name": "ip2p_bf16", "what": "w", "status": "skipped", "seconds": 0.0, "results": {},
+         "reason": "Tesla V100 does not support bfloat16"},
+        {"name": "two_process", "what": "w", "status": "failed", "seconds": 3.0, "results": {"wall_s": 1234.5},
+         "reason": "exit code 1: ValueError: a | b"},
+    ]
+
+
+def test_table_and_json_from_rows(tmp_path):
+    env = {"gpu": "NVIDIA H100 80GB HBM3", "gpus": ["NVIDIA H100 80GB HBM3"] * 2, "torch": "2.13.0+cu128",
+           "cuda": "12.8", "gsplat": "1.5.3"}
+    report = gpu_check.build_report(fake_rows(), env, budget_s=570, wall_s=321.04, settings={"resolution": 512})
+    assert report["counts"] == {"ok": 1, "failed": 1, "skipped": 1}
+    path = gpu_check.write_report(report, str(tmp_path / "deep" / "gpu_check.json"))
+    back = json.loads(Path(path).read_text())
+    assert back == json.loads(json.dumps(report))
+    assert back["gpu"] == "NVIDIA H100 80GB HBM3" and back["gsplat"] == "1.5.3" and back["schema"] == 1
+    assert [r["name"] for r in back["rows"]] == ["gsplat_vs_torch", "ip2p_bf16", "two_process"]
+    table = gpu_check.format_table(report).splitlines()
+    assert table[0] == ("gpu-check on NVIDIA H100 80GB HBM3 (2 GPUs), torch 2.13.0+cu128 (CUDA 12.8), gsplat 1.5.3: "
+                        "1 ok, 1 failed, 1 skipped in 321 s (budget 570 s)")
+    assert table[2:4] == ["| check | status | s | results | reason |", "| --- | --- | --- | --- | --- |"]
+    assert table[4] == ("| gsplat_vs_torch | ok | 12.3 | fwd_rgb_max_abs 2.50e-06, bwd_max_rel_of means, "
+                        "gaussians 50,000, finite yes | - |")  # paths stay in the JSON
+    assert table[5] == "| ip2p_bf16 | skipped | - | - | Tesla V100 does not support bfloat16 |"
+    assert table[6] == "| two_process | failed | 3.0 | wall_s 1,234 | exit code 1: ValueError: a / b |"
+    assert [gpu_check.format_value(v) for v in (None, 0.0, 0.5, 12.3456, 2e-4, 7)] == ["-", "0", "0.5", "12.3", "2.00e-04", "7"]
+    assert gpu_check.last_line("Traceback ...\n  File x\nKeyError: 'a'\n\n") == "KeyError: 'a'"
+
+
+# --------------------------------------------------------------------------- the two-process check
+def test_two_process_command_and_its_failure(tmp_path, monkeypatch):
+    ctx = {"work": str(tmp_path)}
+    cmd = gpu_check.two_process_command(ctx)
+    assert cmd[1].endswith("launch.py") and cmd[cmd.index("--config") + 1].endswith(os.path.join("configs", "demo.yaml"))
+    assert "--train" in cmd and "trainer.devices=2" in cmd and cmd[cmd.index("--gpu") + 1] == "0,1"
+    (tmp_path / "logs").mkdir()
+    failing = [sys.executable, "-c", "import sys; print('starting 2 processes'); "
+               "sys.exit('RuntimeError: the strategy ddp is not supported yet')"]
+    monkeypatch.setattr(gpu_check, "two_process_command", lambda ctx: failing)
+    with pytest.raises(gpu_check.CheckFailed) as e:
+        gpu_check.check_two_process(ctx)
+    assert str(e.value) == "exit code 1: RuntimeError: the strategy ddp is not supported yet"
+
+
+# --------------------------------------------------------------------------- renderers on the CPU
+def test_gsplat_check_is_skipped_off_cuda():
+    with pytest.raises(gpu_check.Skip, match="CUDA"):
+        gpu_check.check_gsplat_vs_torch({"device": "cpu"})
+
+
+def test_render_comparison_on_cpu(monkeypatch):
+    """The comparison itself (torch-rasterizer against itself here): zero differences, gradients
+    reached; a renderer that is off by 2e-3 fails the forward tolerance."""
+    ctx = {"device": "cpu", "render_gaussians": 300, "resolution": 48}
+    same = gpu_check.render_comparison(ctx, other="torch-rasterizer")
+    assert "_fail" not in same and same["gaussians"] == 300 and same["size"] == 48
+    assert same["visible_torch"] > 0 and same["visible_other_only"] == 0
+    for key in ("fwd_rgb_max_abs", "fwd_alpha_max_abs", "fwd_depth_max_rel", "bwd_means_max_abs", "bwd_sh_rest_max_abs",
+                "bwd_means2d_max_abs", "bwd_max_rel"):
+        assert same[key] == 0.0, key
+
+    import gs_regional.registry as registry
+
+    real_find = registry.find
+
+    class OffBy:  # a renderer whose colours are 2e-3 too bright
+        def __init__(self, *a, **kw):
+            self.inner = real_find("torch-rasterizer")()
+
+        def render(self, *a, **kw):
+            out = self.inner.render(*a, **kw)
+            return {**out, "rgb": out["rgb"] + 2e-3}
+
+    monkeypatch.setattr(registry, "find", lambda name, *a, **kw: OffBy if name == "off-by" else real_find(name, *a, **kw))
+    off = gpu_check.render_comparison(ctx, other="off-by")
+    assert off["_fail"].startswith("forward rgb 2.00e-03 > 0.001")
+    assert off["bwd_max_rel"] == 0.0  # a constant offset leaves the gradients as they were
+
+
+# --------------------------------------------------------------------------- fp16 / bf16 on the CPU
+@pytest.fixture(scope="module")
+def ip2p_fp32(tiny_models):
+    return InstructPix2Pix({"pretrained": tiny_models["ip2p"], "device": "cpu", "dtype": "float32",
+                            "num_inference_steps": 4})
+
+
+def images(b=2, h=32, w=40, seed=0):
+    return torch.rand(b, h, w, 3, generator=torch.Generator().manual_seed(seed))
+
+
+@pytest.mark.parametrize("dtype,torch_dtype", [("float16", torch.float16), ("bfloat16", torch.bfloat16),
+                                                ("fp16", torch.float16), ("bf16", torch.bfloat16)])
+def test_half_precision_guidance_runs_on_cpu(tiny_models, ip2p_fp32, dtype, torch_dtype):
+    """An explicit float16 / bfloat16 is honoured on the CPU too (only `auto` picks float32 there):
+    the modules hold that dtype, the outputs are float32 images in [0, 1], close to float32's."""
+    g = InstructPix2Pix({"pretrained": tiny_models["ip2p"], "device": "cpu", "dtype": dtype, "num_inference_steps": 4})
+    assert g.dtype == torch_dtype and g.device.type == "cpu"
+    assert {g.unet.dtype, g.vae.dtype, g.text_encoder.dtype} == {torch_dtype}
+    x = images()
+    edited = g.edit(x, x, PROMPT, seed=[3, 4])
+    ref = ip2p_fp32.edit(x, x, PROMPT, seed=[3, 4])
+    assert edited.dtype == torch.float32 and edited.shape == x.shape and torch.isfinite(edited).all()
+    assert 0 <= float(edited.min()) and float(edited.max()) <= 1
+    assert (edited - ref).abs().max() < 0.1
+    partial = g.edit(x, x, PROMPT, t_start=500, seed=[3, 4])
+    assert partial.dtype == torch.float32 and torch.isfinite(partial).all()
+    rel = g.relevance(x, PROMPT, timestep=500, seed=[1, 2])
+    assert rel.dtype == torch.float32 and rel.shape == x.shape[:3] and torch.isfinite(rel).all()
+    ref_rel = ip2p_fp32.relevance(x, PROMPT, timestep=500, seed=[1, 2])
+    # The relevance map is a difference of two noise predictions: bfloat16's 8-bit mantissa makes it
+    # coarse (here up to 0.25 of the map's maximum off float32's, correlation 0.96; float16: 0.02).
+    assert torch.corrcoef(torch.stack([rel.flatten(), ref_rel.flatten()]))[0, 1] > 0.9
+    assert (rel - ref_rel).abs().max() < (0.05 if torch_dtype == torch.float16 else 0.4)
+    assert g.unet_evals == 4 * 3 * 2 + 2 * 3 * 2 + 2 * 2  # full edit 4 steps, partial 2 (t 501, 251), relevance
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16"])
+def test_ip2p_check_on_cpu_with_tiny_models(tiny_models, dtype):
+    """gpu_check's IP2P check itself (what it runs at 512² on the GPU), on the CPU at 32²."""
+    steps = 3
+    ctx = {"device": "cpu", "priors": {"ip2p": tiny_models["ip2p"]}, "resolution": 32, "schedule": {"ddim_steps": steps}}
+    res = gpu_check.ip2p_step(ctx, dtype)
+    assert "_fail" not in res
+    assert res["dtype"] == dtype and res["out_dtype"] == "float32" and res["finite"] is True
+    assert res["resolution"] == 32 and "peak_gib" not in res  # CUDA memory only on CUDA
+    assert res["unet_evals"] == 3 * (1 + 3) + 3 * steps + 2  # warm-up and 3 timed 1-step edits, one of 3 steps, relevance
+    for key in ("load_s", "edit_1_step_s", f"edit_{steps}_steps_s", "relevance_s"):
+        assert res[key] > 0, key
+
+
+def test_dtype_auto_resolution(tiny_models, monkeypatch):
+    """`dtype: auto` (the guidance's default) is float32 on the CPU and float16 on CUDA; an explicit
+    dtype wins on either. CUDA is mocked: Pretrained resolves, it does not move anything."""
+    assert InstructPix2Pix.Config().dtype == "auto"
+    folder = tiny_models["ip2p"]
+    cpu = Pretrained("InstructPix2Pix", folder, device="auto", dtype="auto")
+    if not torch.cuda.is_available():
+        assert (cpu.device.type, cpu.dtype) == ("cpu", torch.float32)
+    assert Pretrained("InstructPix2Pix", folder, device="cpu", dtype="auto").dtype == torch.float32
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    for device in ("auto", "cuda", "cuda:1"):
+        p = Pretrained("InstructPix2Pix", folder, device=device, dtype="auto")
+        assert (p.device.type, p.dtype) == ("cuda", torch.float16), device
+    assert Pretrained("InstructPix2Pix", folder, device="auto", dtype="bf16").dtype == torch.bfloat16
+    assert Pretrained("InstructPix2Pix", folder, device="auto", dtype="float32").dtype == torch.float32
+    assert resolve_dtype("auto", torch.device("cuda", 0)) == torch.float16
+    with pytest.raises(ValueError, match="unknown dtype 'float8'"):
+        Pretrained("InstructPix2Pix", folder, device="cpu", dtype="float8")
