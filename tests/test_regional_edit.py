@@ -469,7 +469,8 @@ def row_check_components(monkeypatch):
     # within the depth's noise: a trusted initialization would find no change of shape)
     (False, ["system.densify.percent_dense=0", "system.densify.grad_threshold=0.00002"]),
     # every editable Gaussian is pruned at the first densification: fewer rows than the source has
-    (False, ["system.densify.min_opacity=0.98"]),
+    # (an edit prunes only the Gaussians it added unless told otherwise)
+    (False, ["system.densify.min_opacity=0.98", "system.densify.prune_only_added=false"]),
 ])
 def test_scattered_region_rows_stay_tracked_through_densify_and_prune(tmp_path, row_check_components, initialize, overrides):
     """With the region's rows scattered through the scene and densification moving rows during
