@@ -27,7 +27,6 @@ from gs_regional.systems.edit_base import EditSystemBase
 log = logging.getLogger(__name__)
 
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
-AREA_MARGIN_PX = 4  # the first view's mask area counts pixels this near the lifted selection
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
@@ -307,18 +306,14 @@ class RegionalEdit(EditSystemBase):
         cfg, scene, g = self.cfg, self.scene, self.geometry
         views = self.localize_views
         # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
-        # editor is most confident about the region, usually a frontal one. Only its mask pixels
-        # near the lifted 3D selection (within AREA_MARGIN_PX: the masks are blobby) count: a small
-        # part hidden in a view left that view's mask all relevance noise (speckles on the ground),
-        # which could outnumber the part itself in the view that shows it.
+        # editor is most confident about the region, usually a frontal one.
         # The localized masks of the views (kept by run_localize; rendered again after a resume).
         regions = [self.localized_masks.pop(i, None) for i in views]
         regions = [self.rendered_mask(i) if r is None else r for i, r in zip(views, regions)]
         localized = dict(zip(views, regions))
         if self.masks2d is not None:
-            areas = torch.stack([(m.bool().to(self.device) & dilate(r, AREA_MARGIN_PX)).sum()
-                                 for r, m in zip(regions, self.masks2d)]).float()
             regions = [r | m.bool().to(self.device) for r, m in zip(regions, self.masks2d)]
+            areas = self.masks2d.flatten(1).sum(1).float()
         else:
             areas = torch.stack([r.sum() for r in regions]).float()
         alphas: Dict[int, torch.Tensor] = {}  # source opacity per view, rendered once
