@@ -108,18 +108,16 @@ def composite_target(
     and the added Gaussians: room for geometry the edit adds.
 
     The tone drift is fitted only where the source renders something (`opaque`): empty background
-    holds no colour to fit a gain on, and a gain fitted to its clipped noise crushed the whole
-    target to black in views that the region fills (the donut's top, seen from above: 5 dB
-    against the true recolour, 21 dB for the editor's own output)."""
+    holds no colour to fit a gain on, and a gain fitted to its clipped noise would crush the whole
+    target to black in views that the region fills."""
     near = region > 0.05
     if added is not None:
         near = near | (added > 0.05)
     near = dilate(near, margin_px) if margin_px > 0 else near
     far = ~near
     # The edited pixel already mixes the region's new look with what the region covers only
-    # partly, so weighting it by the coverage once more under-edits the region's silhouette (the
-    # demo recolour's head edge: 23.2 dB in the footprint, 25.2 saturated at 0.5; README). The
-    # weight still fades out where the region barely reaches, where the editor's bleed would pass.
+    # partly, so weighting it by the coverage once more would under-edit the region's silhouette.
+    # The weight still fades out where the region barely reaches, where the editor's bleed would pass.
     weight = (region / full_coverage).clamp(0, 1) if full_coverage > 0 else (region > 0).to(region.dtype)
     if bool(far.any()):
         raw_change = (edited - source).abs().amax(-1)
