@@ -32,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export", nargs="?", const="scene", choices=EXPORT_CHOICES, default=None,
                    help="alone: load resume=<ckpt> and call the system's on_export(); 'region' also writes "
                         "the edited region's Gaussians alone (system.export.region=true), with --export or --train")
-    p.add_argument("--gpu", default=None, help="CUDA device index (e.g. 0); without it the run uses the CPU")
+    p.add_argument("--gpu", default=None, help="CUDA device index (e.g. 0); a list (0,1,2,3) shares the edit over "
+                                               "those GPUs; without it the run uses the CPU")
     p.add_argument("--custom-dir", default=None, help="plugin folder (default: custom/ beside launch.py)")
     p.add_argument("--verbose", action="store_true",
                    help="show every log line, Lightning's messages and model summary, and all warnings")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import logging
 import os
@@ -18,13 +19,14 @@ from lightning.pytorch.loggers import CSVLogger
 from gs_regional.config import ConfigError, load_config, unknown_key_message
 from gs_regional.launch.checkpoints import CONFIG_KEY, TrialCheckpointIO, check_resume_config, load_checkpoint_file
 from gs_regional.launch.errors import is_user_error
-from gs_regional.launch.logs import filter_warnings
+from gs_regional.launch.logs import LIGHTNING_LOGGERS, filter_warnings
 from gs_regional.launch.modes import STAGES, run_mode
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
 from gs_regional.launch.sections import section_configs
 from gs_regional.launch.summary import RunInfo, print_summary
 from gs_regional.launch.trial import TrialLock, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
 from gs_regional.registry import find, load_builtins
+from gs_regional.systems import parallel
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +73,8 @@ def trainer_kwargs(cfg: Any, system: Any, mode: str, gpu: Optional[str], verbose
             gpu_ids = []
         if not gpu_ids or min(gpu_ids) < 0:
             raise ConfigError(f"--gpu must be a CUDA device index such as 0 (or a list such as 0,1), got '{gpu}'")
+        cuda = torch.cuda.is_available()
+        parallel.check_gpu_list(gpu_ids, cuda, torch.cuda.device_count() if cuda else 0)
     if "accelerator" not in kw:
         if gpu is not None and torch.cuda.is_available():
             kw["accelerator"] = "gpu"
@@ -85,6 +89,32 @@ def trainer_kwargs(cfg: Any, system: Any, mode: str, gpu: Optional[str], verbose
     kw.setdefault("enable_checkpointing", True)
     kw.setdefault("enable_model_summary", verbose)  # a table of one GaussianModel says little
     return kw
+
+
+def data_parallel_kwargs(kw: Dict[str, Any], system: Any, mode: str, scene: Any) -> Dict[str, Any]:
+    """Several processes (trainer.devices=N, --gpu 0,1,...): the edit's work shared out over them
+    by gs_regional's data-parallel strategy on Lightning's DDP launcher (systems/parallel.py), for
+    a system that can share it (`check_processes`) and --train; a clear error otherwise. One
+    process: `kw` unchanged."""
+    n = parallel.requested_processes(kw)
+    if n <= 1:
+        return kw
+    name = getattr(system, "registered_name", type(system).__name__)
+    asked = f"trainer.devices / --gpu ask for {n} processes"
+    if not hasattr(system, "check_processes"):
+        raise ConfigError(f"system '{name}' runs on one process ({asked}): give one device")
+    if mode != "train":
+        raise ConfigError(f"--{mode} runs on one process ({asked}): give one device; "
+                          "--train shares an edit over several")
+    if int(kw.get("num_nodes", 1) or 1) > 1:
+        raise ConfigError(f"trainer.num_nodes={kw['num_nodes']}: an edit is shared over the devices of one machine")
+    strategy = kw.get("strategy", "auto")
+    if not (strategy in (None, "auto", "ddp") or isinstance(strategy, parallel.EditDDPStrategy)):
+        raise ConfigError(f"trainer.strategy={strategy!r}: an edit on several processes uses gs_regional's own "
+                          "data-parallel strategy (Lightning's DDP without its module wrapper); "
+                          "leave trainer.strategy unset")
+    system.check_processes(n, scene)
+    return {**kw, "strategy": parallel.EditDDPStrategy()}
 
 
 def checkpoint_callback(cfg: Any, trial: Path):
@@ -117,16 +147,23 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
     load_builtins()
     load_plugins(args.custom_dir or custom_dir or default_custom_dir(), debug=args.debug)
 
+    # In a process that Lightning's launcher started for a run on several devices: rank 0's trial.
+    follower = parallel.handed_down_trial()
+    if follower is not None:  # rank 0 says all there is to say
+        for name in ("gs_regional", "gs_regional.launch", "gs_regional.config", *LIGHTNING_LOGGERS):
+            logging.getLogger(name).setLevel(logging.ERROR)
     cfg = load_config(args.config, overrides, section_configs=section_configs)
     resume = cfg.resume
     if resume and not os.path.isfile(resume):
         raise ConfigError(f"resume checkpoint not found: {resume}")
     if mode in ("validate", "test", "export") and not resume:
         log.warning("--%s without resume=<checkpoint>: using the freshly initialised system", mode)
-    cfg.timestamp = now_timestamp() if cfg.use_timestamp else ""
+    cfg.timestamp = follower[1] if follower is not None else now_timestamp() if cfg.use_timestamp else ""
 
     with warnings.catch_warnings():
         filter_warnings(verbose)
+        if follower is not None:
+            warnings.simplefilter("ignore")
         lightning.seed_everything(cfg.seed, workers=True, verbose=verbose)
         # Check everything, cheapest first, before a trial dir is created and before any model is
         # loaded: the registered names, the scene (cameras, photos, points: Lightning calls
@@ -143,15 +180,20 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
             checkpoint = load_checkpoint_file(resume, mmap=True)  # names the file, offers the previous one
             changes = check_resume_config(resume, checkpoint.get(CONFIG_KEY), run_config(cfg),
                                           getattr(system_cls, "RESUME_FIXED_KEYS", ()))
+        parallel.use_process_gpu(_container(cfg.trainer, "trainer"), args.gpu)  # priors onto this process's GPU
         system = system_cls(cfg.system, resumed=bool(resume))
         kw = trainer_kwargs(cfg, system, mode, args.gpu, verbose)
+        kw = data_parallel_kwargs(kw, system, mode, getattr(datamodule, "scene", None))
         checkpoint_settings(cfg)
 
-        trial, reused = trial_dir_for(cfg, resume)
+        trial, reused = trial_dir_for(cfg, resume) if follower is None else (follower[0], bool(resume))
         cfg.trial_dir = str(trial)
-        # Inputs read by the system inside the Lightning run fail there: the trial dir goes again.
-        with removed_if_start_fails(trial, reused, is_user_error), TrialLock(trial):
-            write_trial_files(trial, cfg, args.config, shlex.join(["python", "launch.py", *argv]), reused)
+        with contextlib.ExitStack() as rank_zero_only:
+            if follower is None:  # the trial is rank 0's: made, locked and written there
+                # Inputs read by the system inside the Lightning run fail there: the trial dir goes again.
+                rank_zero_only.enter_context(removed_if_start_fails(trial, reused, is_user_error))
+                rank_zero_only.enter_context(TrialLock(trial))
+                write_trial_files(trial, cfg, args.config, shlex.join(["python", "launch.py", *argv]), reused)
             if checkpoint is not None and changes:
                 log.warning("resume: the config differs from the checkpoint's (%s); this run uses the new values, "
                             "written to %s", "; ".join(changes), trial / "configs" / f"parsed@{cfg.timestamp}.yaml")
@@ -162,13 +204,16 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
             log.info("trial dir: %s", trial)
             setup_seconds = time.perf_counter() - started
             if mode == "train":
-                trainer.fit(system, datamodule=datamodule, ckpt_path=resume)
+                with parallel.hand_down_trial(trial, cfg.timestamp):  # to the processes Lightning launches
+                    trainer.fit(system, datamodule=datamodule, ckpt_path=resume)
             elif mode == "validate":
                 trainer.validate(system, datamodule=datamodule, ckpt_path=resume)
             elif mode == "test":
                 trainer.test(system, datamodule=datamodule, ckpt_path=resume)
             else:
                 export(trainer, system, datamodule, resume)
+    if follower is not None:
+        return 0
     print_summary(RunInfo(
         trial=trial, mode=mode, config_path=args.config, system_type=cfg.system_type, data_type=cfg.data_type,
         resume=resume, steps=trainer.global_step if mode == "train" else None,

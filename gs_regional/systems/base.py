@@ -32,6 +32,7 @@ import torch.utils.data
 
 from gs_regional.config import parse_structured
 from gs_regional.geometry.gaussian_model import LearningRates
+from gs_regional.systems import parallel
 from gs_regional.utils import visualize
 from gs_regional.utils.io import write_json_atomic
 
@@ -158,16 +159,29 @@ class BaseSystem(lightning.LightningModule):
         return self._datamodule
 
     # ----- outputs -----------------------------------------------------------------------------
+    # With several processes (systems/parallel.py) rank 0 alone writes: the helpers below do
+    # nothing elsewhere (and return the path rank 0 writes).
+    @property
+    def writes_outputs(self) -> bool:
+        """Whether this process writes the run's outputs: always with one process, rank 0 of several."""
+        return parallel.is_rank_zero(self)
+
     def save_image(self, name: str, img: Any) -> str:
         """Write an (H, W, 3) image in [0, 1] (tensor or array) to save/<name>; returns the path."""
+        if not self.writes_outputs:
+            return str(self.trial_dir / "save" / name)
         return visualize.save_image(self.save_path(name), img)
 
     def save_image_grid(self, name: str, rows: Sequence[Sequence[Any]], labels=None) -> str:
         """Tile `rows` (a list of lists of images) into one image at save/<name>."""
+        if not self.writes_outputs:
+            return str(self.trial_dir / "save" / name)
         return visualize.save_image(self.save_path(name), visualize.make_grid(rows, labels=labels))
 
     def save_video(self, name: str, frames: Sequence[Any], fps: float = 24) -> str:
         """Write an mp4 (or, without ffmpeg, a GIF beside it) to save/<name>; returns the path."""
+        if not self.writes_outputs:
+            return str(self.trial_dir / "save" / name)
         return visualize.save_video(self.save_path(name), frames, fps=fps)
 
     def log_metrics(self, metrics: Mapping[str, Any], step: Optional[int] = None) -> None:
@@ -182,6 +196,8 @@ class BaseSystem(lightning.LightningModule):
     def write_metrics_json(self, metrics: Mapping[str, Any], merge: bool = True) -> str:
         """Write save/metrics.json atomically. With `merge`, keys already in the file (from earlier
         stages, or the run before a resume) are kept unless `metrics` replaces them."""
+        if not self.writes_outputs:
+            return str(self.trial_dir / "save" / "metrics.json")
         path = self.save_path("metrics.json")
         data: Dict[str, Any] = {}
         if merge and path.exists():

@@ -6,7 +6,7 @@ import copy
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -15,6 +15,7 @@ from gs_regional.config import ConfigError
 from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.geometry.formats import ExportConfig, export_scene
+from gs_regional.geometry.gaussian_model import PARAM_NAMES
 from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
@@ -22,6 +23,7 @@ from gs_regional.metrics.region import footprint, region_scores, unedited_scores
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
+from gs_regional.systems import parallel
 from gs_regional.systems.base import GaussianSystem
 from gs_regional.utils.image import dilate
 
@@ -158,9 +160,16 @@ class EditSystemBase(GaussianSystem):
         self.source_model.to(self.device)
         self.check_scene()
         t0 = time.perf_counter()
+        cams = self.scene.cameras
+        sizes = {(c.height, c.width) for c in cams}
         with torch.no_grad():
-            renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(self.scene.cameras))]
-            self._source_renders = [self.as_image(r, "the source renders") for r in renders]
+            if parallel.world_size(self) > 1 and len(sizes) == 1:  # each process renders its share
+                self._source_renders = list(self.map_views(len(cams), lambda ks: torch.stack([
+                    self.as_image(self.render_view(i, self.source_model)["rgb"], "the source renders") for i in ks
+                ]), (*sizes.pop(), 3)))
+            else:
+                renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(cams))]
+                self._source_renders = [self.as_image(r, "the source renders") for r in renders]
         self.add_time("source_renders", time.perf_counter() - t0)
 
     def as_image(self, render: torch.Tensor, what: str) -> torch.Tensor:
@@ -227,6 +236,56 @@ class EditSystemBase(GaussianSystem):
         opt.step()
         self.log("train/loss", loss.detach(), prog_bar=True)
         return out
+
+    def optimize_on_views(self, indices: Sequence[int], targets: torch.Tensor,
+                          densify: Optional[DensifyStrategy] = None, step: int = 0) -> None:
+        """One Adam step of the scene towards `targets` (k, H, W, 3) at the k views `indices`: the
+        gradient of their mean loss. With several processes each renders its share of the views,
+        and the gradients and densification statistics are summed over the processes before the
+        step (parallel.reduce_step), so every process takes the same step; with one process, k
+        views in turn, summed the same way."""
+        opt = self.optimizers()
+        g = self.geometry
+        opt.zero_grad(set_to_none=True)
+        stats = parallel.StepStats(g) if densify is not None and densify.collects_stats(step) else None
+        loss_sum = torch.zeros((), device=self.device)
+        for k in parallel.share(len(indices), *parallel.rank_and_world(self)):
+            out = self.render_view(indices[k])
+            loss = self.photometric_loss(out["rgb"], targets[k].to(self.device))
+            self.manual_backward(loss)
+            if stats is not None:
+                densify.collect_stats(g, out, self.scene.cameras[indices[k]], step)
+            loss_sum = loss_sum + loss.detach()
+        loss = parallel.reduce_step(self, [getattr(g, name) for name in PARAM_NAMES], len(indices), loss_sum, stats)
+        opt.step()
+        self.log("train/loss", loss, prog_bar=True)
+
+    # ----- views shared out over processes -------------------------------------------------------
+    def map_views(self, n: int, fn: Callable[[List[int]], torch.Tensor], item_shape: Sequence[int],
+                  dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """`fn(items)` -> (len(items), *item_shape) over range(n): with one process `fn` of all of
+        them; with several each runs its share and the results are gathered in order
+        (parallel.map_views), and the editor's counters and the clamped-pixel count then hold the
+        work of every process."""
+        if parallel.world_size(self) == 1:
+            return fn(list(range(n)))
+        before = self.work_counts()
+        out = parallel.map_views(self, n, fn, item_shape, dtype)
+        self.set_work_counts(parallel.sum_increments(self, before, self.work_counts()))
+        return out
+
+    def work_counts(self) -> Dict[str, int]:
+        """The counters that work shared out over processes adds to: the editor's, and the count
+        of render pixels clamped on their way to it."""
+        return {**{f"guidance.{k}": int(v) for k, v in self.guidance.counters().items()},
+                "render_pixels_clamped": int(self.counts.get("render_pixels_clamped", 0))}
+
+    def set_work_counts(self, counts: Dict[str, int]) -> None:
+        for key, value in counts.items():
+            if key.startswith("guidance."):
+                setattr(self.guidance, key[len("guidance."):], int(value))
+            elif value or key in self.counts:
+                self.counts[key] = int(value)
 
     # ----- checkpoint ----------------------------------------------------------------------------
     def extra_state(self) -> dict:
@@ -323,8 +382,11 @@ class EditSystemBase(GaussianSystem):
 
     @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
-        """edited.ply, before/after renders, a turntable video and metrics.json."""
+        """edited.ply, before/after renders, a turntable video and metrics.json (rank 0 alone, with
+        several processes: the others return {} at once)."""
         self.set_stage("output")
+        if not self.writes_outputs:
+            return {}
         t0 = time.perf_counter()
         self.geometry.save_ply(str(self.save_dir / "edited.ply"))
         # Which rows of edited.ply the edit selected or added (the viewer highlights them).
@@ -345,7 +407,8 @@ class EditSystemBase(GaussianSystem):
             "gaussians_before": self.n_source,
             "gaussians_after": self.geometry.num_gaussians,
             **{f"count_{k}": v for k, v in self.counts.items()},
-            **self.guidance.counters(),
+            **self.guidance.counters(),  # with several processes, every process's work (map_views)
+            "world_size": parallel.world_size(self),
         }
         # Fidelity of what should not have changed, against the source renders.
         regions = {i: self.evaluation_region(i) for i in views}

@@ -22,6 +22,7 @@ from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.image import dilate
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
+from gs_regional.systems import parallel
 from gs_regional.systems.edit_base import EditSystemBase
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,11 @@ class RefineConfig:
     prune_added: bool = True
     prune_min_weight: float = 1.0
     prune_min_opacity: float = 0.005
+    # Views each training step trains on (the gradient of their mean loss), shared out over the
+    # processes of a run on several devices (systems/parallel.py). A number gives the same edit on
+    # any number of processes (beyond the order of float sums); null: one view per process, so N
+    # devices train on N views a step in the time of one (another edit than one device's).
+    views_per_step: Optional[int] = 1
 
 
 @register("regional-edit")
@@ -193,6 +199,8 @@ class RegionalEdit(EditSystemBase):
         need(r.recolour_lr_scale >= 0, "refine.recolour_lr_scale", "a number >= 0", r.recolour_lr_scale)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
+        need(r.views_per_step is None or r.views_per_step >= 1, "refine.views_per_step",
+             "an integer >= 1 or null (one per process)", r.views_per_step)
         need(0 <= lc.timestep < n_t, "localization.timestep", f"a timestep in [0, {n_t - 1}]", lc.timestep)
         if r.constant_t is not None:
             need(0 <= r.constant_t < n_t, "refine.constant_t", f"a timestep in [0, {n_t - 1}]", r.constant_t)
@@ -216,6 +224,22 @@ class RegionalEdit(EditSystemBase):
             log.warning("system.refine.m=%d: the scene has %d training views, so every cycle edits all of them",
                         self.cfg.refine.m, n)
         super().check_scene()
+
+    def check_processes(self, n: int, scene) -> None:
+        """Before a run on `n` processes (launch.py; systems/parallel.py): each stage that shares
+        its views out must have one for every process."""
+        if scene is None:
+            return
+        train, lc, r = list(scene.train_indices), self.cfg.localization, self.cfg.refine
+        stages = [(min(r.m, max(len(train) - 1, 0)) + 1,
+                   f"views in each refinement cycle (system.refine.m={r.m} and the frontal view)")]
+        if self.cfg.localize and lc.gamma > 0:
+            stages.append((len(spread_subset(train, lc.max_views)),
+                           f"localization views (system.localization.max_views={lc.max_views})"))
+        views, what = min(stages)
+        if n > views:
+            raise ConfigError(f"trainer.devices / --gpu ask for {n} processes, but the edit has only {views} {what} "
+                              f"to share out among them: give at most {views} devices")
 
     @property
     def total_steps(self) -> int:
@@ -244,10 +268,11 @@ class RegionalEdit(EditSystemBase):
         else:
             images = torch.stack([self.source_renders[i] for i in views])
             cams = [scene.cameras[i] for i in views]
-            masks = self.guidance.mask(
-                images, cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
-                samples=lc.samples, seed=cfg.seed, cameras=cams,
-            )
+            # The views shared out over the processes of a run on several devices (map_views).
+            masks = self.map_views(len(views), lambda ks: self.guidance.mask(
+                images[ks], cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
+                samples=lc.samples, seed=cfg.seed, cameras=[cams[k] for k in ks],
+            ), images.shape[1:3])
             lifted = localize_gaussians(
                 g, self.renderer, [c.to(self.device) for c in cams], masks, threshold=lc.mask_threshold,
                 reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
@@ -256,6 +281,7 @@ class RegionalEdit(EditSystemBase):
             selected = lifted["selected"]
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
+            selected = parallel.from_rank_zero(self, selected)  # every process edits one selection
             iou = mask_agreement(lifted["views"], masks, selected)
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
@@ -286,8 +312,9 @@ class RegionalEdit(EditSystemBase):
                 m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
             self.localized_masks[i] = m3 > 0.5
             self.save_image(f"localize/mask3d_{i:03d}.png", overlay_mask(self.source_renders[i], m3 > 0.5))
-        if selected.any():
+        if selected.any() and self.writes_outputs:
             g.select(selected).save_ply(str(self.save_dir / "mask.ply"))
+        self.localize_metrics = parallel.from_rank_zero(self, self.localize_metrics)  # one decision to go on
         self.phase = "initialize"
 
     # ----- stage 2 -------------------------------------------------------------------------------
@@ -440,21 +467,27 @@ class RegionalEdit(EditSystemBase):
                 frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
-        # Every view is edited from a render of the same scene state, so all go to the editor in one
-        # call (batched by guidance.batch_size), each with its own seed as if edited alone.
-        to_edit = [j for j in views if not (cycle == 0 and j == self.v_first)]
-        edited = {}
-        if to_edit:
-            current = torch.stack([self.as_image(self.render_view(j)["rgb"], "the current renders") for j in to_edit])
-            out = self.guidance.edit(
-                current, torch.stack([self.source_renders[j] for j in to_edit]), cfg.prompt,
-                t_start=self.start_timestep(cycle), seed=[self.view_seed(cycle, j) for j in to_edit],
-                cameras=[scene.cameras[j] for j in to_edit],
-            )
-            edited = dict(zip(to_edit, out.to(self.device)))
-        if cycle == 0:
-            edited[self.v_first] = self.first_edit  # the first, full edit is this cycle's frontal target
-        self.cycle_targets = torch.stack([self.composite(j, edited[j]) for j in views])
+
+        def targets(ks: List[int]) -> torch.Tensor:
+            # Every view is edited from a render of the same scene state, so all go to the editor in
+            # one call (batched by guidance.batch_size), each with its own seed as if edited alone;
+            # with several processes, each edits its share of the views (map_views).
+            mine = [views[k] for k in ks]
+            to_edit = [j for j in mine if not (cycle == 0 and j == self.v_first)]
+            edited = {}
+            if to_edit:
+                current = torch.stack([self.as_image(self.render_view(j)["rgb"], "the current renders") for j in to_edit])
+                out = self.guidance.edit(
+                    current, torch.stack([self.source_renders[j] for j in to_edit]), cfg.prompt,
+                    t_start=self.start_timestep(cycle), seed=[self.view_seed(cycle, j) for j in to_edit],
+                    cameras=[scene.cameras[j] for j in to_edit],
+                )
+                edited = dict(zip(to_edit, out.to(self.device)))
+            if cycle == 0 and self.v_first in mine:
+                edited[self.v_first] = self.first_edit  # the first, full edit is this cycle's frontal target
+            return torch.stack([self.composite(j, edited[j]) for j in mine])
+
+        self.cycle_targets = self.map_views(len(views), targets, self.source_renders[frontal].shape)
         self.cycle_views = views
         self.targets_cycle = cycle
         self.edited_views = sorted(set(self.edited_views) | set(views))
@@ -507,13 +540,15 @@ class RegionalEdit(EditSystemBase):
                     "instruction names nothing the editor finds consistently.")
             self.save_stage_checkpoint()  # a kill later in this step resumes after localization
         if self.phase == "initialize":
-            if not self.run_initialize():
+            initialized = parallel.from_rank_zero(self, self.run_initialize())  # one decision to go on
+            if not initialized:
                 coverage, lc = self.localize_metrics["edit_coverage"], self.cfg.localization
                 return self.stop_unchanged(
                     "edit outside the region", f"initialize: the first edited view ({self.v_first}) changes the image "
                     f"outside the localized region: a fraction {coverage:.2f} of its change beyond the editor's noise "
                     f"lies in the region, below system.localization.min_edit_coverage={lc.min_edit_coverage}; "
                     "localization selected something other than what the editor edits.")
+            parallel.check_agree(self, "initialization", [self.geometry.num_gaussians, self.v_first])
             self.save_stage_checkpoint()
         if self.phase != "refine":
             return None
@@ -528,16 +563,26 @@ class RegionalEdit(EditSystemBase):
         t0 = time.perf_counter()
         # Stateless per-step choice of view, so a resumed run makes the same choices.
         gen = torch.Generator().manual_seed(self.cfg.seed * 104729 + step)
-        k = int(torch.randint(len(self.cycle_views), (1,), generator=gen))
+        n_views = min(r.views_per_step or parallel.world_size(self), len(self.cycle_views))
+        if n_views == 1:
+            ks = [int(torch.randint(len(self.cycle_views), (1,), generator=gen))]
+        else:
+            ks = torch.randperm(len(self.cycle_views), generator=gen)[:n_views].tolist()
         # A trusted depth initialization that found no change of shape (a recolour): the existing
         # Gaussians are recoloured, none are added.
         densify = self.cfg.densify if self.shape_may_change else None
-        self.optimize_on(self.cycle_views[k], self.cycle_targets[k], densify=densify, step=it)
+        if n_views == 1 and parallel.world_size(self) == 1:
+            self.optimize_on(self.cycle_views[ks[0]], self.cycle_targets[ks[0]], densify=densify, step=it)
+        else:  # the step's views shared out over the processes of a run on several devices
+            self.optimize_on_views([self.cycle_views[k] for k in ks], self.cycle_targets[ks], densify=densify, step=it)
+        if densify is not None and densify.densifies_at(it, r.iterations_per_cycle - 1):
+            parallel.agree_on_rng(self)  # split samples: rank 0's draws on every process
         rep = None if densify is None else densify.refine(
             self.geometry, it, self.scene.extent, self.optimizers().optimizer,
             last_step=r.iterations_per_cycle - 1, base_count=self.refine_start_count,
         )
         if rep is not None:
+            parallel.check_agree(self, f"the densification of step {step}", [self.geometry.num_gaussians])
             self.counts["densified"] = self.counts.get("densified", 0) + rep["cloned"] + rep["split"]
             self.counts["pruned"] = self.counts.get("pruned", 0) + rep["pruned"]
         self.add_time("refine_train", time.perf_counter() - t0)
@@ -563,6 +608,7 @@ class RegionalEdit(EditSystemBase):
             return 0
         cams = [self.scene.cameras[i].to(self.device) for i in self.scene.train_indices]
         useless = rows.spare_last_descendants(g, useless_added(g, self.renderer, cams, r.prune_min_weight, r.prune_min_opacity))
+        useless = parallel.from_rank_zero(self, useless)  # every process prunes the same rows
         n = int(useless.sum())
         if n:
             rows.keep(g, ~useless, self.optimizers().optimizer)
