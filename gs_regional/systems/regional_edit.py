@@ -98,9 +98,8 @@ class RefineConfig:
     # The parameters of the selected source Gaussians that an edit which may change the shape
     # leaves as they were: only the Gaussians the edit added (from depth, by densification) train
     # them, the source's keep their place, size and opacity and change colour only. Free, the
-    # region's Gaussians grew over their neighbours (the figure's eyes faded under the head) and
-    # moved with every view's jittered target; the demo add, footprint 22.9 -> 24.0 dB, outside
-    # it 41.4 -> 45.0 dB. [] frees them all (an edit that must move or remove source geometry).
+    # region's Gaussians grow over their neighbours and follow every view's jittered target
+    # (docs/method.md). [] frees them all (an edit that must move or remove source geometry).
     source_fixed: List[str] = field(default_factory=lambda: ["means", "quats", "log_scales", "opacity_logits"])
     # Keep each edited view only where the localized Gaussians render (weighted by how much of the
     # pixel they cover) and the source render elsewhere: the 2D editor's changes outside the region
