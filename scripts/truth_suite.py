@@ -378,6 +378,17 @@ def face_subject(out: str, n_cameras: int, downscale: float) -> Subject:
 _SCALES = (1.0, 0.7, 1.3, 0.45, 0.2, 0.0)  # tried in turn when a drawn anchor misses the subject
 
 
+def _anchor(subject, case, direction, width):
+    """(through, landing point, scale): the case's offset on the subject's plane across
+    `direction`, shrunk by _SCALES until a line along `direction` lands on the subject."""
+    for scale in _SCALES:
+        through = subject.in_plane(direction, [scale * x for x in case["offset"]])
+        p = _landing(subject, through, direction, width)
+        if p is not None:
+            return through, p, scale
+    raise ValueError(f"{case['id']}: no surface on the {subject.name} subject near {case['offset']}")
+
+
 def _landing(subject: Subject, through, direction, width: float):
     """splat-truth's surface point along `direction` through `through` (whole splat), or None when
     it misses or lands off the subject (Subject.on_subject)."""
@@ -442,13 +453,7 @@ def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[
             part = "icing"
         else:
             width = max(case["ball_radius"] * subject.radius * 0.5, 0.02 * subject.radius)
-            for scale in _SCALES:
-                through = subject.in_plane(subject.front, [scale * x for x in case["offset"]])
-                p = _landing(subject, through, subject.front, width)
-                if p is not None:
-                    break
-            else:
-                raise ValueError(f"{case['id']}: no anchor on the {subject.name} subject near {case['offset']}")
+            _, p, scale = _anchor(subject, case, subject.front, width)
             data["anchor"] = subject.to_object(p)
             data["ball_radius"] = round(case["ball_radius"] * subject.radius / subject.obj_radius, 5)
             facts.update(anchor_world=[round(float(v), 4) for v in p], anchor_scale=scale)
@@ -456,13 +461,7 @@ def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[
     else:
         data["edit"] = "add"
         r = case["add_radius"] * subject.radius
-        for scale in _SCALES:
-            through = subject.in_plane(subject.add_up, [scale * x for x in case["offset"]])
-            p = _landing(subject, through, subject.add_up, r)
-            if p is not None:
-                break
-        else:
-            raise ValueError(f"{case['id']}: no surface under the anchor on the {subject.name} subject near {case['offset']}")
+        through, p, scale = _anchor(subject, case, subject.add_up, r)
         data.update(anchor=subject.to_object(through), add_radius=round(r / subject.obj_radius, 5),
                     add_count=case["add_count"], region_radius=case["region_radius"])
         facts.update(anchor_world=[round(float(v), 4) for v in p], anchor_scale=scale)

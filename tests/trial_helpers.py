@@ -68,14 +68,15 @@ def write_bright_photo_scene(tmp, n_cameras, size, gain=1.8):
     renderer = find("torch-rasterizer")()
     bg = torch.tensor([1.0, 1.0, 1.0])
     frames = []
-    for cam in make_cameras(n=n_cameras, width=size, height=size)[0]:
+    cameras = make_cameras(n=n_cameras, width=size, height=size)[0]
+    for cam in cameras:
         rgb = (renderer.render(source, cam, background=bg)["rgb"].detach() * gain).clamp(0, 1)
         name = f"images/{cam.image_name}.png"
         iio.imwrite(folder / name, (rgb * 255).round().to(torch.uint8).numpy())
         c2w = cam.camera_to_world.double().clone()
         c2w[:3, 1:3] *= -1  # OpenCV camera axes -> nerfstudio's OpenGL ones
         frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
-    first = make_cameras(n=n_cameras, width=size, height=size)[0][0]
+    first = cameras[0]
     meta = {"camera_model": "OPENCV", "fl_x": first.fx, "fl_y": first.fy, "cx": first.cx, "cy": first.cy,
             "w": size, "h": size, "frames": frames}
     (folder / "transforms.json").write_text(json.dumps(meta))

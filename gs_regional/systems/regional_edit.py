@@ -321,8 +321,12 @@ class RegionalEdit(EditSystemBase):
         return render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask) > 0.5
 
     def source_alpha(self, index: int) -> torch.Tensor:
-        """(H, W) rendered opacity of the source scene at view `index`."""
-        return self.render_view(index, self.source_model)["alpha"]
+        """(H, W) rendered opacity of the source scene at view `index`, rendered once per view
+        (initialization and every cycle's composite ask again; the source never changes)."""
+        cache = self.__dict__.setdefault("_source_alpha", {})
+        if index not in cache:
+            cache[index] = self.render_view(index, self.source_model)["alpha"]
+        return cache[index]
 
     @torch.no_grad()
     def run_initialize(self) -> bool:
