@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 
-.PHONY: install demo test truth-suite gpu-check clean
+.PHONY: install browser demo test truth-suite gpu-check clean
 
 $(VENV)/.installed: setup.py
 	python3 -m venv $(VENV)
@@ -18,7 +18,19 @@ install: $(VENV)/.installed
 demo: install
 	$(PY) launch.py --config configs/demo.yaml --train
 
-test: install
+# The browser tests (the viewer's page; our exports in the Spark web viewer) need Chromium:
+# Debian's package, installed here when it is missing and apt-get may (root); otherwise this says
+# so and those tests skip, naming it. Playwright drives it (the `test` extra of setup.py).
+browser:
+	@command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing Debian's chromium for the browser tests"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  apt-get install -y -q chromium >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; } || \
+	  echo "make test: apt-get could not install chromium: the browser tests will skip"; \
+	else echo "make test: Chromium is missing and cannot be installed here (needs root and apt-get): the browser tests will skip"; fi
+
+test: install browser
 	$(PY) -m pytest -q tests
 
 # Known edits drawn at random (scripts/truth_suite.py): a fresh seed each time, printed;

@@ -27,6 +27,7 @@ setup(
         "viewer": ["viser>=1.1"],
         # .spz export (Niantic) through gsply (numpy, numba and a bundled C++ codec); the tests read and write .spz
         "spz": ["gsply>=0.4.6"],
-        "test": ["pytest>=7", "gsply>=0.4.6"],
+        # the tests read and write .spz, and drive the viewer's page and a web splat viewer in Chromium
+        "test": ["pytest>=7", "gsply>=0.4.6", "viser>=1.1", "playwright>=1.40"],
     },
 )

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Model no more than the scene needs (issue 11 §4): the Gaussians an edit adds against its quality,
+"""Model no more than the scene needs: the Gaussians an edit adds against its quality,
 over the densification threshold, the densification budget and the threshold of the pruning after
 refinement, one knob at a time with the others at the regional edit's defaults.
 

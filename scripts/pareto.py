@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Speed against accuracy (issue 11 §2): the regional edit at several budgets, the whole-scene in2n
+"""Speed against accuracy: the regional edit at several budgets, the whole-scene in2n
 baseline at several step counts and the ablations of the method's parts, on known edits, charted
 as quality against cost with the Pareto front of each method.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Where each method breaks (issue 11 §3): the severity of each failure mode of the simulated
+"""Where each method breaks: the severity of each failure mode of the simulated
 editor and depth (gs_regional/sim/) swept from none to beyond realistic, one mode at a time with
 the others at their defaults, on the synthetic `add` edit; plus an instruction whose region is
 empty and a global one.

@@ -18,7 +18,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 from bench_edit import ROOT, run
 
-# Kept in every record (issue 11 §1 names them); missing keys are stored as None.
+# Kept in every record; missing keys are stored as None.
 METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit",

@@ -1,4 +1,4 @@
-"""scripts/compactness.py --quick (issue 11 §4) runs end to end: compactness.json with one record per
+"""scripts/compactness.py --quick runs end to end: compactness.json with one record per
 run, the knee of each knob among the swept runs, and the chart. The quick mode is a check of the
 script, not a measurement."""
 import compactness

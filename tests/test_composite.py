@@ -1,4 +1,4 @@
-"""Refinement targets change pixels only where the edit is (issue 12, "No halo"): on the synthetic
+"""Refinement targets change pixels only where the edit is: on the synthetic
 scene's known recolour and addition, the composite of a simulated edit keeps the edit and leaves the
 pixels around it as the source renders them, where the former dilated (6 px), feathered composite
 let the editor's bleed and the blur of regenerating the image through."""
@@ -19,7 +19,7 @@ EDITOR_SEEDS = (0, 1, 2)
 
 
 def former_composite(edited, source, region, margin_px=6):
-    """The composite before issue 12: the region dilated by 6 px and feathered."""
+    """The earlier composite: the region dilated by 6 px and feathered."""
     soft = gaussian_blur(dilate(region > 0.05, margin_px).float()[None], margin_px / 2)[0]
     return soft[..., None] * edited + (1 - soft[..., None]) * source
 

@@ -1,4 +1,4 @@
-"""The GPU path (issue 10): every render of an edit run happens on the module's device, after
+"""The GPU path: every render of an edit run happens on the module's device, after
 Lightning has placed the module there; `renderer_type: auto`; the views of a refinement cycle are
 edited in batches with one seed per view, giving the same targets as one view at a time.
 
@@ -234,7 +234,7 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
     assert torch.allclose(a, b, atol=1e-3), float((a - b).abs().max())
 
 
-# ------------------------------------------------------------------ gsplat on a GPU (issue 10, 5a)
+# ------------------------------------------------------------------ gsplat on a GPU
 
 
 @GSPLAT

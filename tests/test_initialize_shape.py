@@ -1,5 +1,4 @@
-"""Depth initialization adds Gaussians only where the shape changes (issue 12, "Initialize only
-what changes shape"), on the synthetic scene's known edits with the simulated editor and depth:
+"""Depth initialization adds Gaussians only where the shape changes, on the synthetic scene's known edits with the simulated editor and depth:
 a recolour adds (close to) none, an addition adds next to the true new Gaussians, and a
 calibration that cannot be trusted falls back to densification with a warning in metrics.json."""
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""scripts/pareto.py --quick (issue 11 §2) runs end to end: pareto.json with one record per run
+"""scripts/pareto.py --quick runs end to end: pareto.json with one record per run
 and the metrics of §1, and the chart. The quick mode is a check of the script, not a measurement."""
 import pareto
 from trial_helpers import run_quick

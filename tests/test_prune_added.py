@@ -1,4 +1,4 @@
-"""After refinement, the Gaussians an edit added that contribute nothing are pruned (issue 11 §4),
+"""After refinement, the Gaussians an edit added that contribute nothing are pruned,
 on the synthetic scene's true `add` edit: the moustache's Gaussians (generation 1) plus planted
 useless ones (hidden inside the head, or transparent) that a known answer says must go."""
 import torch

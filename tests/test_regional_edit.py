@@ -339,7 +339,7 @@ def test_gamma_zero_is_a_global_edit(tmp_path, capsys):
 
 
 def test_run_writes_the_viewer_formats(runs):
-    """Every edit run writes edited.splat and edited.compressed.ply beside edited.ply (issue 14):
+    """Every edit run writes edited.splat and edited.compressed.ply beside edited.ply:
     the same Gaussians, read back by gs_regional.geometry.formats."""
     from gs_regional.geometry.formats import read_scene
 
@@ -407,7 +407,7 @@ def test_simulator_on_a_scene_without_ground_truth_says_what_to_do(tmp_path, cap
     assert "simulated-editor is a simulator" in err and "data_type: synthetic-scene" in err, err
 
 
-# ----- rows of the region scattered through the file (issue 10, "Row misalignment") -----------------
+# ----- rows of the region scattered through the file -----------------
 import dataclasses  # noqa: E402
 
 from gs_regional.sim.scene import SyntheticDataModule  # noqa: E402

@@ -1,4 +1,4 @@
-"""Nothing lost, nothing silent (issue 13): a table of bad inputs and faults -> what the user gets,
+"""Nothing lost, nothing silent: a table of bad inputs and faults -> what the user gets,
 and kill-and-resume at every stage boundary of the regional edit compared with an uninterrupted run.
 
 Every run is the demo (simulated editor and depth) at a tiny size, in-process, except the one that

@@ -1,4 +1,4 @@
-"""scripts/stability.py --quick (issue 11 §3) runs end to end: stability.json with the records,
+"""scripts/stability.py --quick runs end to end: stability.json with the records,
 the break table and the charts; and the safe path of an instruction about nothing (the views
 disagree about the region: the run warns and writes the source unchanged)."""
 from pathlib import Path

@@ -2,7 +2,6 @@
 and the page itself in headless Chromium (skipped where viser, playwright or Chromium is absent)."""
 import io
 import json
-import shutil
 import socket
 import sys
 import time
@@ -17,6 +16,7 @@ from gs_regional.launch import view
 from gs_regional.launch.summary import RunInfo, format_summary
 from gs_regional.sim.scene import make_edit
 from trial_helpers import write_scene_folder
+from web_tools import browser
 
 SYNTHETIC = {"edit": "recolor", "seed": 0, "n_cameras": 8, "width": 48, "height": 48, "n_object": 1500, "n_background": 1000}
 PROMPT = "make his head red"
@@ -146,14 +146,6 @@ def test_summary_gives_the_viewer_command(recolor_trial):
 
 
 # ----- the page in a real browser ---------------------------------------------------------------
-def _chromium() -> str:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    pytest.skip("no Chromium installed (Debian: apt-get install chromium)")
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -189,16 +181,11 @@ def _next_frame(page, previous: np.ndarray, seconds: float = 10.0) -> np.ndarray
 
 def test_page_renders_the_splats_and_toggles_before_after(recolor_trial):
     pytest.importorskip("viser", reason="the 'viewer' extra (viser) is not installed")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
-    chromium = _chromium()
     trial_dir, _ = recolor_trial
     viewer = view.serve(view.load_trial(trial_dir), port=_free_port())
     try:
-        with sync_api.sync_playwright() as p:
-            # No GPU here: WebGL through Chromium's software renderer (SwiftShader).
-            browser = p.chromium.launch(executable_path=chromium, args=[
-                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
-            page = browser.new_page(viewport={"width": 960, "height": 400})
+        with browser() as chromium:
+            page = chromium.new_page(viewport={"width": 960, "height": 400})
             page.goto(viewer.url)
             # Wait for the splats: most of the 3D view covered (camera frustums alone are thin lines).
             deadline, edited = time.monotonic() + 45, None  # software WebGL on a busy CPU is slow
@@ -224,7 +211,6 @@ def test_page_renders_the_splats_and_toggles_before_after(recolor_trial):
             shown.press("Enter")
             page.get_by_text("shows a random 1,000 of its").first.wait_for(timeout=10_000)
             assert all(s.shown == 1000 for s in viewer.splats.values())
-            browser.close()
     finally:
         viewer.stop()
     edited, source, highlighted = _view_area(edited), _view_area(source), _view_area(highlighted)

@@ -43,7 +43,7 @@ class InitConfig:
     # New points farther than this from every selected Gaussian (as a fraction of the selection's
     # robust bounding-box diagonal) are not part of the region: bleed over the background, depth
     # outliers. 0.5: an object standing on the region (the donut's cherry, as tall as the region
-    # is wide) reaches past 0.25 of it (donut add 21.56 dB at 0.5, 16.36 at 0.25).
+    # is wide) reaches past 0.25 of it (docs/method.md).
     max_distance: float = 0.5
     median: int = 3  # median filter of the monocular disparities: isolated wrong pixels make floaters
 

@@ -1,4 +1,4 @@
-"""After refinement: the Gaussians an edit added that contribute nothing (issue 11 §4)."""
+"""After refinement: the Gaussians an edit added that contribute nothing."""
 from __future__ import annotations
 
 from typing import Sequence

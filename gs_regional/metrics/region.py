@@ -1,4 +1,4 @@
-"""Metrics that see the edited region (issue 11 §1), as pure functions of images and masks.
+"""Metrics that see the edited region, as pure functions of images and masks.
 
 Images are (..., H, W, 3) in [0, 1]; pixel masks are (..., H, W) bool over the same views. Scores
 pool every masked pixel of every view (one PSNR over all of them, not a mean of per-view PSNRs).
