@@ -144,3 +144,32 @@ def test_a_region_that_fills_the_object_keeps_its_edit():
           f"worst view target - editor {worst:.2f} dB")
     # Measured: target 20.26, editor 21.73, nothing 11.76 dB; worst view -3.2 dB (without `opaque`: -16.1).
     assert target >= nothing + 6.0 and target >= edited - 2.5 and worst >= -5.0
+
+
+def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_change():
+    """A 2D editor redraws the whole view and softens every sharp edge in it. Counted as change,
+    the edges of the unedited parts outweigh a small edit inside the region, and the safe stop
+    ("edit outside the region") fired on correct edits. Known answer: a small recolour inside the
+    region, the rest of the view only blurred: (almost) all of the change is in the region."""
+    from gs_regional.edit.composite import edit_coverage, real_change
+
+    gen = torch.Generator().manual_seed(0)
+    h = w = 64
+    source = torch.full((h, w, 3), 0.5)
+    for k in range(6):  # sharp-edged parts of other colours all over the view
+        y, x = 4 + 10 * k, 4 + (17 * k) % 48
+        source[y:y + 7, x:x + 9] = torch.rand(3, generator=gen)
+    region = torch.zeros(h, w, dtype=torch.bool)
+    region[28:36, 50:58] = True
+    source[region] = torch.tensor([0.2, 0.3, 0.8])
+    edited = gaussian_blur(source.permute(2, 0, 1), 1.0).permute(1, 2, 0)
+    edited = edited + 0.01 * torch.randn(edited.shape, generator=gen)  # the editor's own noise
+    small = torch.zeros_like(region)
+    small[30:34, 52:56] = True  # the edit: a patch inside the region turned orange
+    edited[small] = torch.tensor([0.9, 0.5, 0.1])
+    coverage = edit_coverage(edited, source, region)
+    assert coverage is not None and coverage >= 0.9, coverage
+    # The plain difference sees the blurred edges as change: the test can tell the two apart.
+    calm = ~dilate(region, 2)
+    plain, _ = real_change(edited, source, calm, 4.0, explain_blur=False)
+    assert float(plain[dilate(region, 2)].sum() / plain.sum()) < 0.5

@@ -448,6 +448,34 @@ def test_first_edit_outside_the_localized_region_stops_with_the_source_unchanged
     np.testing.assert_array_equal(np.stack([edited[k] for k in "xyz"], 1), source.means.detach().numpy())
 
 
+def test_a_first_edit_that_shows_nothing_is_checked_in_another_view(tmp_path, monkeypatch):
+    """The editor's 2D mask can be largest in a view that hides the region: its full edit then
+    shows nothing of the edit but the noise of regenerating the view, and the few pixels of it
+    beyond the noise decide nothing. Known answer: the first full edit returns the view with one
+    speck changed far from the region (coverage 0); the run does not stop, the view where the
+    2D masks and the selection overlap most is edited instead and initialization goes on there."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    edit, first = SimulatedEditor._edit, []
+
+    def first_full_edit_shows_nothing(self, images, cond_images, prompt, t_start, seeds, cameras):
+        if t_start is None and not first:
+            first.append(cameras[0].image_name)
+            out = images.clone()
+            out[:, 0, 0] = 1.0 - out[:, 0, 0]  # one pixel in a corner, nowhere near the head
+            return out
+        return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+
+    monkeypatch.setattr(SimulatedEditor, "_edit", first_full_edit_shows_nothing)
+    assert launch(tmp_path, "hidden") == 0
+    m = metrics(trial(tmp_path, "hidden"))
+    checked = m["edit_coverage_views"]
+    assert len(first) == 1 and len(checked) == 2 and checked[0]["coverage"] == 0.0
+    assert checked[0]["changed_px"] < 0.15 * checked[1]["changed_px"]
+    assert "stopped" not in m and m["warnings"] == []
+    assert m["v_first"] == checked[1]["view"] and m["edit_coverage"] == checked[1]["coverage"] >= 0.5
+
+
 def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     m = metrics(reference["trial"])
     assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5

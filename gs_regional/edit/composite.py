@@ -1,7 +1,7 @@
 """§3.3: the targets of refinement: an edited view kept only where the edit is."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
@@ -16,7 +16,8 @@ MIN_TONE_PIXELS = 64  # fewer calm pixels of the object than this: no tone fit
 
 
 def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, noise_sigmas: float,
-                tone: Optional[torch.Tensor] = None, explain_blur: bool = True) -> tuple:
+                tone: Optional[torch.Tensor] = None, explain_blur: bool = True,
+                blur_in_noise: Optional[bool] = None) -> tuple:
     """Where the 2D editor really changed the view, beyond what regenerating it does everywhere.
 
     `calm` (H, W) bool are pixels the edit should leave alone. On the calm pixels of `tone` (all of
@@ -24,15 +25,18 @@ def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, 
     least MIN_TONE_PIXELS) and taken out of the whole view; then 1.4826 x the median of what still
     differs from the source on those pixels (on all calm ones when there was no fit) is its noise
     (a Gaussian's std): a tone map fitted on the object says nothing of the empty background.
-    With `explain_blur`, what a blurred source explains is no change (`regeneration_change`).
-    Returns ((H, W) in [0, 1]: 0 up to `noise_sigmas` x that noise, 1 from twice that; the
-    tone-matched `edited`)."""
+    With `explain_blur`, what a blurred source explains is no change (`regeneration_change`);
+    `blur_in_noise` (default: as `explain_blur`) says whether the noise is measured on that
+    blur-explained difference or on the plain one. Returns ((H, W) in [0, 1]: 0 up to
+    `noise_sigmas` x that noise, 1 from twice that; the tone-matched `edited`)."""
     fit = calm if tone is None else calm & tone
     if int(fit.sum()) >= MIN_TONE_PIXELS:  # enough pixels to see what regenerating the view did to its tone
         edited = match_colors(edited, source, fit, max_gain=MAX_TONE_GAIN)
         calm = fit
-    change = regeneration_change(edited, source) if explain_blur else (edited - source).abs().amax(-1)
-    threshold = max(noise_sigmas * 1.4826 * float(change[calm].median()), 1.0 / 255)
+    plain = (edited - source).abs().amax(-1)
+    change = regeneration_change(edited, source) if explain_blur else plain
+    noise = change if (explain_blur if blur_in_noise is None else blur_in_noise) else plain
+    threshold = max(noise_sigmas * 1.4826 * float(noise[calm].median()), 1.0 / 255)
     return ((change - threshold) / threshold).clamp(0, 1), edited
 
 
@@ -55,32 +59,42 @@ def regeneration_change(edited: torch.Tensor, source: torch.Tensor) -> torch.Ten
     return change
 
 
-def edit_coverage(
+def edit_change(
     edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
     source: torch.Tensor,  # (H, W, 3) render of the unedited scene
     region: torch.Tensor,  # (H, W) bool: where the localized Gaussians render
     opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
     margin_px: int = 2,
     noise_sigmas: float = 4.0,
-) -> Optional[float]:
-    """The fraction of the editor's change (`real_change`: beyond `noise_sigmas` x its noise,
-    measured on the opaque pixels beyond `margin_px` of `region`) that lies within `margin_px` of
-    `region`: near 1 when the editor edits what localization selected, low when it edits
-    something else. Empty background (not `opaque`, not near the region) is left out: no Gaussian
-    renders there, and its noise, clipped at black, would set the threshold below the blur of
-    regenerating the object. None when it cannot be told: fewer than 16 calm pixels, or no change."""
+) -> Optional[Tuple[float, float]]:
+    """(pixels of the editor's change within `margin_px` of `region`, pixels of it in all): the
+    change is `real_change`, beyond `noise_sigmas` x the editor's noise measured on the opaque
+    pixels beyond `margin_px` of `region`. Empty background (not `opaque`, not near the region) is
+    left out: no Gaussian renders there, and its noise, clipped at black, would set the threshold
+    below the blur of regenerating the object. None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
     seen = torch.ones_like(near) if opaque is None else near | opaque.to(near.device)
     calm = seen & ~near
     if int(calm.sum()) < 16:
         return None
-    # The plain change: explaining the blur also lowers the noise measured on the calm pixels,
-    # and in small views (48²) the edges of every part then counted as changes far from the
-    # region: runs stopped that should not have.
-    changed, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=False)
+    # A pixel a blurred source explains is no change: the sharp edges of every part, which
+    # regenerating the view softens, would outweigh a small edit. The noise is measured on the
+    # plain difference: blur-explained, it falls so low on small views (48²) that those edges
+    # count as changes again.
+    changed, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
-    total = float(changed.sum())
-    return float(changed[near].sum()) / total if total > 0 else None
+    return float(changed[near].sum()), float(changed.sum())
+
+
+def edit_coverage(edited: torch.Tensor, source: torch.Tensor, region: torch.Tensor,
+                  opaque: Optional[torch.Tensor] = None, margin_px: int = 2, noise_sigmas: float = 4.0) -> Optional[float]:
+    """The fraction of the editor's change (`edit_change`) that lies within `margin_px` of
+    `region`: near 1 when the editor edits what localization selected, low when it edits
+    something else. None when it cannot be told: fewer than 16 calm pixels, or no change."""
+    counts = edit_change(edited, source, region, opaque, margin_px, noise_sigmas)
+    if counts is None or counts[1] <= 0:
+        return None
+    return counts[0] / counts[1]
 
 
 def composite_target(

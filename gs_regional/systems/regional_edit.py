@@ -9,7 +9,7 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import composite_target, edit_coverage
+from gs_regional.edit.composite import composite_target, edit_change
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
@@ -28,6 +28,9 @@ from gs_regional.systems.edit_base import EditSystemBase
 log = logging.getLogger(__name__)
 
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
+# A first edit whose change (beyond the editor's noise) is under this fraction of another view's
+# shows nothing of the edit: the region is hidden there (run_initialize).
+SHOWS_NOTHING = 0.15
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
@@ -43,9 +46,7 @@ class LocalizeConfig:
     # own colour is closer to the outside's local mean colour than to the interior's by this factor
     # (gs_regional.edit.localize.outside_like_edge_votes): blobby relevance maps reach a pixel past
     # the region, and a surface seen edge-on beside it (a neck under a head) is selected whole.
-    # 0 switches it off. Demo add/recolour IoU 0.85 -> 0.92; under leakage 1.5 (the body lit up
-    # more than the head) the seam it removes was all that made the edit land: such a run now
-    # stops safely on `min_edit_coverage` (README "Why not higher").
+    # 0 switches it off (docs/method.md).
     edge_colour_ratio: float = 0.5
     # Robust lifting (gs_regional.edit.localize.localize_gaussians); 0 / 1 give the plain vote.
     reweight_iters: int = 2  # re-lift with views weighted by their agreement with the 3D mask
@@ -61,9 +62,8 @@ class LocalizeConfig:
     # the fraction of the editor's change beyond its noise in that view (tone drift fitted away,
     # as for the composite; gs_regional.edit.composite.edit_coverage) within 2 px of the localized
     # region (metrics.json `edit_coverage`). Below this, most of what the editor changes is not
-    # what localization selected, and the run stops with the source written unchanged. Measured
-    # (first view of the synthetic add/recolor, the donut's): normal runs 0.57-0.99; relevance
-    # missing the region beyond 20° from the front (the body selected) 0.00-0.44. 0 never stops.
+    # what localization selected, and the run stops with the source written unchanged (the
+    # values seen on runs that should and should not stop: docs/method.md). 0 never stops.
     min_edit_coverage: float = 0.5
 
 
@@ -80,11 +80,7 @@ class RefineConfig:
     # move colours far; an addition needs the opposite: each partial denoise regenerates what the
     # render already shows, and from less noise it keeps more of the new geometry's sharpness
     # instead of redrawing it anew in every view (the views disagree and training averages them
-    # into a smear). Measured (footprint PSNR, README issue 12), t_schedule -> [600, 400, 200] ->
-    # [450, 350, 250]: demo add 21.10 -> 21.33 -> 21.74 dB (seed 1: 22.03 -> 22.53 -> 22.91; the
-    # scene of data.seed=1: 19.00 -> 18.86 -> 19.14), donut add 21.27 -> 21.42 -> 21.69; from
-    # [300, 200, 100] the demo add drops (20.54). The recolours lose with less noise (demo
-    # 23.18 -> 21.68, donut 16.35 -> 16.23 at [600, 400, 200]), so they keep `t_schedule`.
+    # into a smear). Recolours lose with less noise, so they keep `t_schedule` (docs/method.md).
     shape_t_schedule: Optional[List[int]] = field(default_factory=lambda: [450, 350, 250])
     constant_t: Optional[int] = None  # ablation: one start timestep for every cycle
     iterations_per_cycle: int = 500
@@ -116,8 +112,7 @@ class RefineConfig:
     composite_full_coverage: float = 0.5
     # A recolour (depth initialization trusted, no change of shape) trains only colours, at this
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
-    # colours far in a few hundred (x6: demo recolour 17.4 -> 23.2 dB in the region, donut
-    # recolour 11.2 -> 16.4; on the add edit, which trains shapes too, x3 lost 0.5 dB: not used there).
+    # colours far in a few hundred. Not used when the shape may change (docs/method.md).
     recolour_lr_scale: float = 6.0
     # After the last cycle, Gaussians the edit added (from depth or by densification) that
     # contribute nothing are removed: total rendered weight over the training views below
@@ -346,31 +341,61 @@ class RegionalEdit(EditSystemBase):
             areas = self.masks2d.flatten(1).sum(1).float()
         else:
             areas = torch.stack([r.sum() for r in regions]).float()
-        alphas: Dict[int, torch.Tensor] = {}  # source opacity per view, rendered once
         if cfg.initialize and not bool(g.mask.all()):
             # Among the views that leave enough pixels outside the region to calibrate the
             # monocular depth on (a region that fills the view leaves none), when there are any.
-            alphas = {i: self.source_alpha(i) for i in views}
             calibratable = torch.tensor([
-                int(calibration_pixels(alphas[i], r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
+                int(calibration_pixels(self.source_alpha(i), r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
                 for i, r in zip(views, regions)
             ], device=areas.device)
             if bool(calibratable.any()):
                 areas = torch.where(calibratable, areas, torch.full_like(areas, -1.0))
         self.v_first = views[int(torch.argmax(areas))]
+
+        def first_edit(u: int):
+            """The editor's full edit of view `u`, and what of its change lies in the localized
+            region (`coverage` None: cannot be told; a global edit leaves nothing to compare)."""
+            out = self.guidance.edit(self.source_renders[u][None], self.source_renders[u][None], cfg.prompt,
+                                     t_start=None, seed=cfg.seed, cameras=[scene.cameras[u]])[0].to(self.device)
+            counts = None if bool(g.mask.all()) else edit_change(
+                out, self.source_renders[u], localized[u], opaque=self.source_alpha(u) > 0.5,
+                noise_sigmas=cfg.refine.composite_noise_sigmas)
+            near, total = counts if counts is not None else (0.0, 0.0)
+            return out, {"view": u, "coverage": near / total if total > 0 else None, "changed_px": round(total, 1),
+                         "region_px": int(localized[u].sum())}
+
+        # Does the editor edit what localization selected? (No ground truth needed.)
+        edited, check = first_edit(self.v_first)
+        checked = [check]
+        low = cfg.localization.min_edit_coverage
+        if check["coverage"] is not None and check["coverage"] < low and len(views) > 1:
+            # One edit of one view is thin evidence for throwing the run away. The view where the
+            # editor's 2D masks and the selection overlap most is edited too, and decides when
+            # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
+            # can be largest in a view that hides the region) or only just missed (coverage at
+            # least half the minimum: a placement jittered off the region's edge).
+            masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
+                       for k, u in enumerate(views)]
+            overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
+            overlap = torch.where(areas < 0, torch.full_like(overlap, -1.0), overlap)  # not calibratable
+            overlap[views.index(self.v_first)] = -1.0
+            u = views[int(torch.argmax(overlap))]
+            if u != self.v_first:
+                edited_u, check_u = first_edit(u)
+                checked.append(check_u)
+                log.info("initialize: the first edit (view %d) lies outside the selection: %s; view %d: %s",
+                         self.v_first, check, u, check_u)
+                shows_nothing = check["changed_px"] < SHOWS_NOTHING * check_u["changed_px"]
+                if shows_nothing or (check["coverage"] >= low / 2 and (check_u["coverage"] or 0.0) >= low):
+                    self.v_first, edited = u, edited_u
+        coverage = next(c["coverage"] for c in checked if c["view"] == self.v_first)
         v = self.v_first
-        cam = scene.cameras[v]
         unedited = self.source_renders[v]
-        edited = self.guidance.edit(unedited[None], unedited[None], cfg.prompt, t_start=None, seed=cfg.seed, cameras=[cam])[0]
-        self.first_edit = edited.to(self.device)
+        self.first_edit = edited
         self.save_image("initialize/first_view_source.png", unedited)
         self.save_image("initialize/first_view_edited.png", edited)
-        # Does the editor edit what localization selected? (No ground truth needed; a global edit
-        # selects everything and leaves nothing to compare with.)
-        coverage = None if bool(g.mask.all()) else edit_coverage(
-            self.first_edit, unedited, localized[v], opaque=(alphas[v] if v in alphas else self.source_alpha(v)) > 0.5,
-            noise_sigmas=cfg.refine.composite_noise_sigmas)
         self.localize_metrics["edit_coverage"] = coverage
+        self.localize_metrics["edit_coverage_views"] = checked
         if coverage is not None and coverage < cfg.localization.min_edit_coverage:
             self.add_time("initialize", time.perf_counter() - t0)
             return False
@@ -449,8 +474,7 @@ class RegionalEdit(EditSystemBase):
             g.set_added_only(self.cfg.refine.source_fixed)
         if not self.cfg.refine.optimize_all and not self.shape_may_change:
             # A recolour: the region's Gaussians keep their shape and opacity, only their colours
-            # train (left free, they grew and moved into the unedited surroundings: the donut's
-            # recolour scored 31 dB on the silhouette around its region).
+            # train (left free, they grow and move into the unedited surroundings).
             for group in self.optimizers().optimizer.param_groups:
                 group["lr"] *= self.cfg.refine.recolour_lr_scale if group["name"] in SHAPE_FREE_PARAMS else 0.0
 
@@ -545,11 +569,18 @@ class RegionalEdit(EditSystemBase):
         if self.phase == "initialize":
             initialized = parallel.from_rank_zero(self, self.run_initialize())  # one decision to go on
             if not initialized:
-                coverage, lc = self.localize_metrics["edit_coverage"], self.cfg.localization
+                checked, lc = self.localize_metrics["edit_coverage_views"], self.cfg.localization
+                decided = next(c for c in checked if c["view"] == self.v_first)
+                other = next((c for c in checked if c is not decided), None)
+                note = "" if other is None else (
+                    f" (view {other['view']}, edited first, showed almost nothing of the edit)" if other is checked[0] else
+                    f" (view {other['view']}, where the editor's 2D masks and the selection overlap most, puts "
+                    f"{other['coverage'] or 0:.2f} in it: the editor edits different things in different views)")
                 return self.stop_unchanged(
-                    "edit outside the region", f"initialize: the first edited view ({self.v_first}) changes the image "
-                    f"outside the localized region: a fraction {coverage:.2f} of its change beyond the editor's noise "
-                    f"lies in the region, below system.localization.min_edit_coverage={lc.min_edit_coverage}; "
+                    "edit outside the region", f"initialize: the first edited view ({decided['view']}) changes the "
+                    f"image outside the localized region: a fraction {decided['coverage']:.2f} of its change beyond "
+                    f"the editor's noise lies in the region, below system.localization.min_edit_coverage="
+                    f"{lc.min_edit_coverage}{note}; "
                     "localization selected something other than what the editor edits.")
             parallel.check_agree(self, "initialization", [self.geometry.num_gaussians, self.v_first])
             self.save_stage_checkpoint()
