@@ -30,8 +30,9 @@ browser:
 	  echo "make test: apt-get could not install chromium: the browser tests will skip"; \
 	else echo "make test: Chromium is missing and cannot be installed here (needs root and apt-get): the browser tests will skip"; fi
 
+# On every core (pytest-xdist), a test file to a process: module fixtures are built once.
 test: install browser
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n auto --dist loadfile tests
 
 # Known edits drawn at random (scripts/truth_suite.py): a fresh seed each time, printed;
 # `make truth-suite SEED=N` redraws the cases of seed N.

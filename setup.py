@@ -27,7 +27,8 @@ setup(
         "viewer": ["viser>=1.1"],
         # .spz export (Niantic) through gsply (numpy, numba and a bundled C++ codec); the tests read and write .spz
         "spz": ["gsply>=0.4.6"],
-        # the tests read and write .spz, and drive the viewer's page and a web splat viewer in Chromium
-        "test": ["pytest>=7", "gsply>=0.4.6", "viser>=1.1", "playwright>=1.40"],
+        # the tests read and write .spz, drive the viewer's page and a web splat viewer in Chromium,
+        # and run on every core (pytest-xdist)
+        "test": ["pytest>=7", "pytest-xdist>=3", "gsply>=0.4.6", "viser>=1.1", "playwright>=1.40"],
     },
 )

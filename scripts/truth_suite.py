@@ -83,7 +83,7 @@ METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited",
     "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_precision", "mask_recall", "view_agreement",
-    "edit_coverage", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
+    "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
     "stopped", "warnings",
 )

@@ -13,6 +13,11 @@ os.environ["HF_DATASETS_OFFLINE"] = "1"
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # Idle OpenMP threads sleep instead of spinning (see launch.py); set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# With the tests spread over processes (`pytest -n`, as `make test` runs them), each gets its share
+# of the cores for torch's threads instead of all of them; also set before torch is imported.
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _WORKERS)))
 
 # The benchmark scripts (scripts/*.py) import as modules in the tests that check them.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))

@@ -473,7 +473,7 @@ def test_a_first_edit_that_shows_nothing_is_checked_in_another_view(tmp_path, mo
     assert len(first) == 1 and len(checked) == 2 and checked[0]["coverage"] == 0.0
     assert checked[0]["changed_px"] < 0.15 * checked[1]["changed_px"]
     assert "stopped" not in m and m["warnings"] == []
-    assert m["v_first"] == checked[1]["view"] and m["edit_coverage"] == checked[1]["coverage"] >= 0.5
+    assert m["v_first"] == checked[1]["view"] and checked[1]["decides"] and m["edit_coverage"] == checked[1]["coverage"] >= 0.5
 
 
 def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):

@@ -2,6 +2,7 @@
 splat-transform, the Spark splat viewer and three.js), headless Chromium driven by Playwright,
 and a local HTTP server for the pages they open."""
 import contextlib
+import fcntl
 import functools
 import http.server
 import os
@@ -25,13 +26,18 @@ def npm_tool(relative: str) -> Path:
     (`npm ci`). Skipped only where node or npm is missing; a failing install fails the test,
     naming the folder."""
     path = NPM_TOOLS / "node_modules" / relative
-    if not path.exists():
-        npm = shutil.which("npm")
-        if not (shutil.which("node") and npm):
-            pytest.skip(f"node/npm not found: {relative} (tests/npm) needs Node.js (apt-get install nodejs npm)")
-        proc = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=NPM_TOOLS, capture_output=True,
-                              text=True, timeout=900)
-        assert proc.returncode == 0 and path.exists(), f"npm ci in {NPM_TOOLS} failed:\n{proc.stderr[-3000:]}"
+    if path.exists():
+        return path
+    npm = shutil.which("npm")
+    if not (shutil.which("node") and npm):
+        pytest.skip(f"node/npm not found: {relative} (tests/npm) needs Node.js (apt-get install nodejs npm)")
+    # One install at a time: test processes running side by side (pytest -n) would race.
+    with open(NPM_TOOLS / "node_modules.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.exists():
+            proc = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=NPM_TOOLS, capture_output=True,
+                                  text=True, timeout=900)
+            assert proc.returncode == 0 and path.exists(), f"npm ci in {NPM_TOOLS} failed:\n{proc.stderr[-3000:]}"
     return path
 
 

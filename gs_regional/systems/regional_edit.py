@@ -372,8 +372,9 @@ class RegionalEdit(EditSystemBase):
             # One edit of one view is thin evidence for throwing the run away. The view where the
             # editor's 2D masks and the selection overlap most is edited too, and decides when
             # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
-            # can be largest in a view that hides the region) or only just missed (coverage at
-            # least half the minimum: a placement jittered off the region's edge).
+            # can be largest in a view that hides the region; initialization moves there) or only
+            # just missed (coverage at least half the minimum: a placement jittered off the
+            # region's edge; initialization stays with the first view).
             masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
                        for k, u in enumerate(views)]
             overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
@@ -385,10 +386,12 @@ class RegionalEdit(EditSystemBase):
                 checked.append(check_u)
                 log.info("initialize: the first edit (view %d) lies outside the selection: %s; view %d: %s",
                          self.v_first, check, u, check_u)
-                shows_nothing = check["changed_px"] < SHOWS_NOTHING * check_u["changed_px"]
-                if shows_nothing or (check["coverage"] >= low / 2 and (check_u["coverage"] or 0.0) >= low):
-                    self.v_first, edited = u, edited_u
-        coverage = next(c["coverage"] for c in checked if c["view"] == self.v_first)
+                if check["changed_px"] < SHOWS_NOTHING * check_u["changed_px"]:
+                    self.v_first, edited, check = u, edited_u, check_u
+                elif check["coverage"] >= low / 2:
+                    check = check_u
+        coverage = check["coverage"]
+        check["decides"] = True
         v = self.v_first
         unedited = self.source_renders[v]
         self.first_edit = edited
@@ -570,7 +573,7 @@ class RegionalEdit(EditSystemBase):
             initialized = parallel.from_rank_zero(self, self.run_initialize())  # one decision to go on
             if not initialized:
                 checked, lc = self.localize_metrics["edit_coverage_views"], self.cfg.localization
-                decided = next(c for c in checked if c["view"] == self.v_first)
+                decided = next(c for c in checked if c.get("decides"))
                 other = next((c for c in checked if c is not decided), None)
                 note = "" if other is None else (
                     f" (view {other['view']}, edited first, showed almost nothing of the edit)" if other is checked[0] else
