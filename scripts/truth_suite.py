@@ -29,9 +29,10 @@ each kind), sizes in radii of the scene's subject (the figure, the donut, the he
   add_small      a sphere of radius 0.06-0.10 (100-200 Gaussians) resting on the subject (seen from up)
   add_large      a sphere of radius 0.15-0.25 (300-600 Gaussians)
 An addition's selected region (what the editor's relevance lights up and localization should find:
-the part the object sits on) is the splat's Gaussians within 1.2-8 sphere radii of it (log-uniform),
-so from about the object's own size up to tens of times its Gaussian count (`region_to_added` in
-each record). Colours, anchors and run seeds are random too; the prompt names the part.
+the part the object sits on) is the splat's Gaussians within 1.2-8 sphere radii of it (log-uniform;
+widened by 1.25x steps while it holds fewer Gaussians than the object, as where a ball barely
+touches a sparse surface), so from about the object's own size up to tens of times its Gaussian
+count (`region_to_added` in each record). Colours, anchors and run seeds are random too; the prompt names the part.
 
 Per case it records the footprint PSNR against the truth and what doing nothing scores there
 (gain = the difference), the PSNR outside the footprint, of the unedited region, mask IoU,
@@ -79,6 +80,8 @@ N_SYNTHETIC_SEEDS = 6  # scene seeds of the synthetic scene drawn per run (>= 5)
 NATIVE_SHARE = 0.25  # synthetic large recolours / larger additions drawn as the scene's own edits
 
 # Kept in every record; a key metrics.json lacks (e.g. mask_iou_seen of an older run) is None.
+MIN_REGION_TO_ADDED = 1.0  # an addition's region holds at least the object's own Gaussian count
+
 METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited",
@@ -469,6 +472,11 @@ def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[
     if family == "donut" and case["kind"] != "recolor_large":
         part = "icing" if part == "icing" else "donut"
     stats, region = _truth_stats(data)
+    while case["kind"].startswith("add") and stats["region_to_added"] < MIN_REGION_TO_ADDED and data["region_radius"] < 64:
+        # A ball barely touching a sparse surface selects a Gaussian or two, not the part it is
+        # put on: widen the region until it holds about the object's own count.
+        data["region_radius"] = round(data["region_radius"] * 1.25, 3)
+        stats, region = _truth_stats(data)
     if case["kind"].startswith("recolor") and subject.labels is not None:
         part = subject.main_part(region) or part
     data["prompt"] = _prompt(case, part)

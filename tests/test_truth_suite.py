@@ -83,6 +83,8 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
         assert r["gain"] == r["psnr_region_vs_true_edit"] - r["psnr_region_source_vs_true_edit"]
         assert r["true_gaussians_added"] == r["true_added"] and r["region_gaussians"] > 0 and r["prompt"]
         assert r["unet_evals"] > 0 and r["wall_seconds"] > 0 and r["overrides"]
+        if r["kind"].startswith("add"):  # the part an object is put on holds at least its count
+            assert r["region_to_added"] >= truth_suite.MIN_REGION_TO_ADDED, r
     png = tmp_path / "truth_suite.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     # --replot redraws from the JSON alone
