@@ -151,7 +151,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     the edges of the unedited parts outweigh a small edit inside the region, and the safe stop
     ("edit outside the region") fired on correct edits. Known answer: a small recolour inside the
     region, the rest of the view only blurred: (almost) all of the change is in the region."""
-    from gs_regional.edit.composite import edit_coverage, real_change
+    from gs_regional.edit.composite import edit_change, real_change
 
     gen = torch.Generator().manual_seed(0)
     h = w = 64
@@ -167,8 +167,8 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     small = torch.zeros_like(region)
     small[30:34, 52:56] = True  # the edit: a patch inside the region turned orange
     edited[small] = torch.tensor([0.9, 0.5, 0.1])
-    coverage = edit_coverage(edited, source, region)
-    assert coverage is not None and coverage >= 0.9, coverage
+    near, total = edit_change(edited, source, region)
+    assert total > 0 and near / total >= 0.9, (near, total)
     # The plain difference sees the blurred edges as change: the test can tell the two apart.
     calm = ~dilate(region, 2)
     plain, _ = real_change(edited, source, calm, 4.0, explain_blur=False)

@@ -16,8 +16,7 @@ MIN_TONE_PIXELS = 64  # fewer calm pixels of the object than this: no tone fit
 
 
 def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, noise_sigmas: float,
-                tone: Optional[torch.Tensor] = None, explain_blur: bool = True,
-                blur_in_noise: Optional[bool] = None) -> tuple:
+                tone: Optional[torch.Tensor] = None, explain_blur: bool = True, blur_in_noise: bool = True) -> tuple:
     """Where the 2D editor really changed the view, beyond what regenerating it does everywhere.
 
     `calm` (H, W) bool are pixels the edit should leave alone. On the calm pixels of `tone` (all of
@@ -26,16 +25,16 @@ def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, 
     differs from the source on those pixels (on all calm ones when there was no fit) is its noise
     (a Gaussian's std): a tone map fitted on the object says nothing of the empty background.
     With `explain_blur`, what a blurred source explains is no change (`regeneration_change`);
-    `blur_in_noise` (default: as `explain_blur`) says whether the noise is measured on that
-    blur-explained difference or on the plain one. Returns ((H, W) in [0, 1]: 0 up to
-    `noise_sigmas` x that noise, 1 from twice that; the tone-matched `edited`)."""
+    `blur_in_noise=False` measures the noise on the plain difference instead of on that one.
+    Returns ((H, W) in [0, 1]: 0 up to `noise_sigmas` x that noise, 1 from twice that; the
+    tone-matched `edited`)."""
     fit = calm if tone is None else calm & tone
     if int(fit.sum()) >= MIN_TONE_PIXELS:  # enough pixels to see what regenerating the view did to its tone
         edited = match_colors(edited, source, fit, max_gain=MAX_TONE_GAIN)
         calm = fit
     plain = (edited - source).abs().amax(-1)
     change = regeneration_change(edited, source) if explain_blur else plain
-    noise = change if (explain_blur if blur_in_noise is None else blur_in_noise) else plain
+    noise = change if blur_in_noise else plain
     threshold = max(noise_sigmas * 1.4826 * float(noise[calm].median()), 1.0 / 255)
     return ((change - threshold) / threshold).clamp(0, 1), edited
 
@@ -84,17 +83,6 @@ def edit_change(
     changed, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
     return float(changed[near].sum()), float(changed.sum())
-
-
-def edit_coverage(edited: torch.Tensor, source: torch.Tensor, region: torch.Tensor,
-                  opaque: Optional[torch.Tensor] = None, margin_px: int = 2, noise_sigmas: float = 4.0) -> Optional[float]:
-    """The fraction of the editor's change (`edit_change`) that lies within `margin_px` of
-    `region`: near 1 when the editor edits what localization selected, low when it edits
-    something else. None when it cannot be told: fewer than 16 calm pixels, or no change."""
-    counts = edit_change(edited, source, region, opaque, margin_px, noise_sigmas)
-    if counts is None or counts[1] <= 0:
-        return None
-    return counts[0] / counts[1]
 
 
 def composite_target(

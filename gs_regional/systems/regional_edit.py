@@ -60,7 +60,7 @@ class LocalizeConfig:
     min_view_agreement: float = 0.3
     # The first full edit (initialization) checked against the selection, without ground truth:
     # the fraction of the editor's change beyond its noise in that view (tone drift fitted away,
-    # as for the composite; gs_regional.edit.composite.edit_coverage) within 2 px of the localized
+    # as for the composite; gs_regional.edit.composite.edit_change) within 2 px of the localized
     # region (metrics.json `edit_coverage`). Below this, most of what the editor changes is not
     # what localization selected, and the run stops with the source written unchanged (the
     # values seen on runs that should and should not stop: docs/method.md). 0 never stops.
@@ -352,11 +352,18 @@ class RegionalEdit(EditSystemBase):
                 areas = torch.where(calibratable, areas, torch.full_like(areas, -1.0))
         self.v_first = views[int(torch.argmax(areas))]
 
+        full_edits: Dict[int, torch.Tensor] = {}  # view -> the editor's full edit of it (one seed: edited once)
+
+        def full_edit(u: int) -> torch.Tensor:
+            if u not in full_edits:
+                full_edits[u] = self.guidance.edit(self.source_renders[u][None], self.source_renders[u][None], cfg.prompt,
+                                                   t_start=None, seed=cfg.seed, cameras=[scene.cameras[u]])[0].to(self.device)
+            return full_edits[u]
+
         def first_edit(u: int):
             """The editor's full edit of view `u`, and what of its change lies in the localized
             region (`coverage` None: cannot be told; a global edit leaves nothing to compare)."""
-            out = self.guidance.edit(self.source_renders[u][None], self.source_renders[u][None], cfg.prompt,
-                                     t_start=None, seed=cfg.seed, cameras=[scene.cameras[u]])[0].to(self.device)
+            out = full_edit(u)
             counts = None if bool(g.mask.all()) else edit_change(
                 out, self.source_renders[u], localized[u], opaque=self.source_alpha(u) > 0.5,
                 noise_sigmas=cfg.refine.composite_noise_sigmas)
@@ -399,7 +406,7 @@ class RegionalEdit(EditSystemBase):
         self.save_image("initialize/first_view_edited.png", edited)
         self.localize_metrics["edit_coverage"] = coverage
         self.localize_metrics["edit_coverage_views"] = checked
-        if coverage is not None and coverage < cfg.localization.min_edit_coverage:
+        if coverage is not None and coverage < low:
             self.add_time("initialize", time.perf_counter() - t0)
             return False
         if cfg.initialize and bool(g.mask.all()):
@@ -417,12 +424,11 @@ class RegionalEdit(EditSystemBase):
                 if k:
                     log.info("initialize: the depth of view %d shows no change of shape; checking the edit of view %d",
                              order[k - 1], u)
-                    edited = self.guidance.edit(unedited_u[None], unedited_u[None], cfg.prompt, t_start=None,
-                                                seed=cfg.seed, cameras=[cam_u])[0]
+                    edited = full_edit(u)  # the coverage check may have edited it already
                 out = self.render_view(u)
-                disp = self.depth_estimator.disparity(torch.stack([unedited_u, edited.to(self.device)]), cameras=[cam_u, cam_u])
+                disp = self.depth_estimator.disparity(torch.stack([unedited_u, edited]), cameras=[cam_u, cam_u])
                 params, report, d_new = new_gaussians_from_depth(
-                    cam_u, unedited_u, edited.to(self.device), regions[views.index(u)], out["depth"], out["alpha"],
+                    cam_u, unedited_u, edited, regions[views.index(u)], out["depth"], out["alpha"],
                     disp[0], disp[1], cfg.init, g.sh_degree, region_means=g.means.detach()[g.mask],
                 )
                 shows_change = "rejected" not in report and report["added"] > 0
@@ -433,7 +439,7 @@ class RegionalEdit(EditSystemBase):
             v, edited, params, report, d_new, disp = found
             report["views_checked"] = order[: k + 1]
             if v != self.v_first:  # the view whose depth shows the change of shape is the first edited view
-                self.v_first, self.first_edit = v, edited.to(self.device)
+                self.v_first, self.first_edit = v, edited
                 self.save_image("initialize/first_view_source.png", self.source_renders[v])
                 self.save_image("initialize/first_view_edited.png", edited)
             self.init_report = report
