@@ -20,9 +20,9 @@ VIEW = 10  # a frontal view of the face (the demo picks it as its first edited v
 
 
 def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96,
-               editor_seed: int = 0):
+               editor_seed: int = 0, fill: bool = False, cfg: InitConfig = InitConfig()):
     """new_gaussians_from_depth at `view` (a frontal one by default) of the synthetic `edit`, with
-    the true 2D region."""
+    the true 2D region (`fill`: a region covering every rendered pixel, none left to calibrate on)."""
     gt = make_edit(edit)
     cam = make_cameras(n_cameras, size, size)[0][view]
     renderer = find("torch-rasterizer")()
@@ -34,9 +34,11 @@ def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: 
         out = renderer.render(gt.source, cam)
         edited = editor.edit(out["rgb"][None], out["rgb"][None], gt.prompt, t_start=None, seed=0, cameras=[cam])[0]
         region = render_selection(gt.source, renderer, cam, gt.region) > 0.5
+        if fill:
+            region = out["alpha"].reshape(region.shape) > 0.01
         disp = depth.disparity(torch.stack([out["rgb"], edited]), cameras=[cam, cam])
         params, report, _ = new_gaussians_from_depth(
-            cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], InitConfig(), 0,
+            cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], cfg, 0,
             region_means=gt.source.means[gt.region],
         )
     return gt, params, report
@@ -63,6 +65,57 @@ def test_an_addition_adds_next_to_the_true_new_gaussians():
     # Most added points lie on the moustache (within 10% of its size); depth noise puts a few farther.
     assert float(distance.median()) < 0.1 * extent
     assert float((distance < 0.2 * extent).float().mean()) >= 0.8
+
+
+@pytest.mark.parametrize("corruption", [1.0, 3.0])
+def test_a_recolour_whose_region_fills_the_view_is_told_without_calibration(corruption):
+    """A region that covers every rendered pixel leaves none to calibrate the monocular depth on.
+    Whether the shape changes is then told from the two disparities alone (edited against unedited):
+    a recolour shows no change (trusted: nothing added, refinement recolours without densifying,
+    where the rejected calibration densified), an addition shows one (rejected: densification
+    places it)."""
+    _, params, report = initialize("recolor", corruption=corruption, fill=True)
+    print(report)
+    assert report["calibration_pixels"] < InitConfig().min_calibration_pixels
+    assert "rejected" not in report and report["added"] == 0 and not params
+    assert report["uncalibrated"]["shape_changed"] is False
+    # The head as the region, and no calibration allowed: the same verdicts on both edits.
+    no_calibration = InitConfig(min_calibration_pixels=10**9)
+    _, params, report = initialize("recolor", corruption=corruption, cfg=no_calibration)
+    print(report)
+    assert "rejected" not in report and report["added"] == 0 and report["uncalibrated"]["shape_changed"] is False
+    _, _, report = initialize("add", corruption=corruption, cfg=no_calibration)
+    print(report)
+    assert "rejected" in report and report["added"] == 0
+    u = report["uncalibrated"]
+    assert u["shape_changed"] is True and u["nearer_pixels"] > 3 * (u["farther_pixels"] + 1)
+
+
+def test_uncalibrated_shape_change_on_known_disparities():
+    """The uncalibrated test on disparities with a known answer: a slanted surface seen under two
+    different affine maps with noise has no change of shape; the same with a nearer bump over 3 %
+    of the pixels has one; a bump moved *back* (uncovered, not added) is none."""
+    from gs_regional.edit.initialize import uncalibrated_shape_change
+
+    g = torch.Generator().manual_seed(0)
+    h = w = 64
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    true = 1.0 / (2.0 + xx + 0.5 * yy)
+    valid = torch.ones(h, w, dtype=torch.bool)
+    bump = ((yy - 0.5) ** 2 + (xx - 0.5) ** 2) < 0.1 ** 2  # about 3 % of the pixels
+    cfg = InitConfig()
+
+    def mono(d, scale, shift):
+        return scale * d + shift + 0.005 * float(true.max() - true.min()) * torch.randn(h, w, generator=g)
+
+    unedited = mono(true, 2.0, 0.1)
+    same = uncalibrated_shape_change(unedited, mono(true, 3.5, -0.2), valid, valid, cfg)
+    nearer = uncalibrated_shape_change(unedited, mono(torch.where(bump, true * 1.2, true), 3.5, -0.2), valid, valid, cfg)
+    back = uncalibrated_shape_change(unedited, mono(torch.where(bump, true * 0.8, true), 3.5, -0.2), valid, valid, cfg)
+    print(same, nearer, back)
+    assert same["shape_changed"] is False and nearer["shape_changed"] is True and back["shape_changed"] is False
+    assert nearer["nearer_pixels"] >= 0.8 * int(bump.sum())
+    assert uncalibrated_shape_change(unedited, unedited, valid & False, valid, cfg) is None  # nothing opaque
 
 
 def test_a_corrupted_depth_is_rejected():

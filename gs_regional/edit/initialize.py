@@ -110,6 +110,46 @@ def calibration_pixels(alpha_3dgs: torch.Tensor, region: torch.Tensor, cfg: Init
     return (alpha_3dgs > cfg.alpha_min) & ~dilate(region, cfg.dilate_px)
 
 
+MIN_UNCALIBRATED_PIXELS = 64  # opaque pixels needed to compare two disparities without calibration
+
+
+def changed_pixels(change: torch.Tensor, threshold: float) -> torch.Tensor:
+    """(H, W) bool: `change` above `threshold` with another such pixel among its 8 neighbours (a
+    change of shape covers more than one pixel; an isolated one is the depth's noise)."""
+    above = change > threshold
+    kernel = torch.ones(1, 1, 3, 3, device=change.device)
+    neighbours = F.conv2d(above.float()[None, None], kernel, padding=1)[0, 0] - 1
+    return above & (neighbours >= 0.5)
+
+
+def uncalibrated_shape_change(disp_unedited: torch.Tensor, disp_edited: torch.Tensor, valid: torch.Tensor,
+                              region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
+    """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
+    two monocular disparities alone, for a view with no pixels to calibrate on (the region fills
+    it): the estimator sees the edited and the unedited image alike, so the edited disparity is
+    mapped onto the unedited one by a robust affine fit over every opaque (`valid`) pixel, which a
+    change of shape covering a minority of them does not move. What is left, in units of the
+    disparity's spread, is noise, except where new geometry came nearer; noise goes both ways, so
+    the pixels that moved *back* by as much say how many nearer ones it explains. The shape changed
+    when the nearer pixels in the region clearly exceed that count and `min_changed_fraction` of
+    the region. None when there are too few opaque pixels to tell."""
+    if int(valid.sum()) < MIN_UNCALIBRATED_PIXELS:
+        return None
+    du, de = median_filter(disp_unedited, cfg.median), median_filter(disp_edited, cfg.median)
+    a, b = robust_affine(de, du, valid)
+    spread = float((du[valid] - du[valid].median()).abs().mean())
+    if not spread > 0:
+        return None
+    change = torch.where(valid, (a * de + b - du) / spread, torch.zeros_like(du))  # > 0: nearer
+    noise = 1.4826 * float(change[valid].abs().median())
+    threshold = cfg.noise_sigmas * max(noise, 1e-6)
+    nearer = int((changed_pixels(change, threshold) & region).sum())
+    farther = int((changed_pixels(-change, threshold) & region).sum())
+    needed = max(farther + 3 * farther ** 0.5 + 1, cfg.min_changed_fraction * int(region.sum()))
+    return {"nearer_pixels": nearer, "farther_pixels": farther, "noise": round(noise, 5),
+            "shape_changed": nearer > needed}
+
+
 def _rejected(report: dict, reason: str) -> tuple:
     """The answer of `new_gaussians_from_depth` when the calibration is rejected: nothing added."""
     report.update(rejected=reason, added=0)
@@ -139,6 +179,12 @@ def new_gaussians_from_depth(
     region = dilate(region, cfg.dilate_px)
     report = {"calibration_pixels": int(calib_px.sum())}
     if report["calibration_pixels"] < max(cfg.min_calibration_pixels, 16):
+        # No depth to place new geometry at; whether the shape changes at all can still be told.
+        change = uncalibrated_shape_change(disp_unedited, disp_edited, valid, region, cfg)
+        report["uncalibrated"] = change
+        if change is not None and not change["shape_changed"]:
+            report["added"] = 0  # a recolour: trusted, nothing to add (refinement recolours)
+            return {}, report, None
         return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region have a "
                          f"rendered depth to calibrate on (system.init.min_calibration_pixels={cfg.min_calibration_pixels})")
     # The 3DGS depth behind the region, extended to empty pixels by the farthest rendered depth,
@@ -194,11 +240,7 @@ def new_gaussians_from_depth(
                          f"residual {residual:.3f} > system.init.max_calibration_residual={cfg.max_calibration_residual})")
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
-    depth_changed = relative_change > threshold  # nearer by more than the noise
-    # A change of shape covers more than one pixel; an isolated pixel beyond the threshold is the
-    # depth's noise (an outlier): keep changed pixels with a changed pixel among their 8 neighbours.
-    neighbours = F.conv2d(depth_changed.float()[None, None], torch.ones(1, 1, 3, 3, device=device), padding=1)[0, 0] - 1
-    depth_changed = depth_changed & (neighbours >= 0.5)
+    depth_changed = changed_pixels(relative_change, threshold)  # nearer by more than the noise
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
     # whose changed pixels are not clearly more than that rate predicts (Poisson: mean + 3 std + 1)

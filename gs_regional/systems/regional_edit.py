@@ -31,6 +31,10 @@ SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of
 # A first edit whose change (beyond the editor's noise) is under this fraction of another view's
 # shows nothing of the edit: the region is hidden there (run_initialize).
 SHOWS_NOTHING = 0.15
+# A full edit whose change (beyond the editor's noise) covers fewer than this fraction of the view's
+# pixels is too small to say where the edit is (at 64², 8 pixels: a small object a few pixels
+# across, or a jittered placement showing a pixel of it): it cannot stop the run.
+MIN_JUDGED_CHANGE = 0.002
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
@@ -393,7 +397,7 @@ class RegionalEdit(EditSystemBase):
                 checked.append(check_u)
                 log.info("initialize: the first edit (view %d) lies outside the selection: %s; view %d: %s",
                          self.v_first, check, u, check_u)
-                if check["changed_px"] < SHOWS_NOTHING * check_u["changed_px"]:
+                if check["changed_px"] < max(SHOWS_NOTHING * check_u["changed_px"], self.min_judged_change(self.v_first)):
                     self.v_first, edited, check = u, edited_u, check_u
                 elif check["coverage"] >= low / 2:
                     check = check_u
@@ -407,8 +411,12 @@ class RegionalEdit(EditSystemBase):
         self.localize_metrics["edit_coverage"] = coverage
         self.localize_metrics["edit_coverage_views"] = checked
         if coverage is not None and coverage < low:
-            self.add_time("initialize", time.perf_counter() - t0)
-            return False
+            if check["changed_px"] >= self.min_judged_change(check["view"]):
+                self.add_time("initialize", time.perf_counter() - t0)
+                return False
+            check["too_small_to_judge"] = True
+            log.info("initialize: the edit of view %d changes %.1f pixels beyond the editor's noise, too few to tell "
+                     "whether it lies in the selection; the edit goes on", check["view"], check["changed_px"])
         if cfg.initialize and bool(g.mask.all()):
             log.warning("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
             self.counts["added_init"] = 0
@@ -431,8 +439,11 @@ class RegionalEdit(EditSystemBase):
                     cam_u, unedited_u, edited, regions[views.index(u)], out["depth"], out["alpha"],
                     disp[0], disp[1], cfg.init, g.sh_degree, region_means=g.means.detach()[g.mask],
                 )
-                shows_change = "rejected" not in report and report["added"] > 0
-                if k == 0 or shows_change:  # a later view's rejected calibration is no evidence either way
+                # A later view's calibration rejected for a poor fit is no evidence either way; a
+                # change of shape seen without calibration (the region fills the view) is.
+                shows_change = ("rejected" not in report and report["added"] > 0) or \
+                    bool((report.get("uncalibrated") or {}).get("shape_changed"))
+                if k == 0 or shows_change:
                     found = (u, edited, params, report, d_new, disp)
                 if (k == 0 and "rejected" in report) or shows_change:
                     break
@@ -447,6 +458,10 @@ class RegionalEdit(EditSystemBase):
                 self.warn(f"initialize: depth calibration rejected in view {v}: {report['rejected']}; no Gaussians are "
                           "added from depth, refinement densifies the region instead")
                 self.counts["added_init"] = 0
+            elif d_new is None:  # no pixels to calibrate on, and the two disparities show no change of shape
+                self.counts["added_init"] = 0
+                log.info("initialize: view %d leaves no pixels to calibrate its depth on; its monocular depth, edited "
+                         "against unedited, shows no change of shape (%s)", v, report["uncalibrated"])
             else:
                 n = params["means"].shape[0]
                 if n:
@@ -474,6 +489,11 @@ class RegionalEdit(EditSystemBase):
         self.add_time("initialize", time.perf_counter() - t0)
         self.phase = "refine"
         return True
+
+    def min_judged_change(self, index: int) -> float:
+        """Pixels of change a full edit of view `index` needs for its coverage to stop the run."""
+        cam = self.scene.cameras[index]
+        return MIN_JUDGED_CHANGE * cam.width * cam.height
 
     def set_trainable(self) -> None:
         g = self.geometry
