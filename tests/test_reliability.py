@@ -476,6 +476,35 @@ def test_a_first_edit_that_shows_nothing_is_checked_in_another_view(tmp_path, mo
     assert m["v_first"] == checked[1]["view"] and checked[1]["decides"] and m["edit_coverage"] == checked[1]["coverage"] >= 0.5
 
 
+@pytest.mark.parametrize("speck", [1, 6])
+def test_a_change_too_small_to_place_does_not_stop_the_run(tmp_path, monkeypatch, speck):
+    """Every full edit changes one square of `speck` x `speck` pixels in a corner, far from the head
+    (coverage 0 in every view). One pixel (under 0.2 % of the 32² view) cannot say where the edit
+    is: a small object a few pixels across, or a jittered placement showing a pixel of it; the run
+    goes on. 36 pixels clearly elsewhere stop it, as before."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    edit = SimulatedEditor._edit
+
+    def speck_only(self, images, cond_images, prompt, t_start, seeds, cameras):
+        if t_start is None:
+            out = images.clone()
+            out[:, :speck, :speck] = 1.0 - out[:, :speck, :speck]
+            return out
+        return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+
+    monkeypatch.setattr(SimulatedEditor, "_edit", speck_only)
+    assert launch(tmp_path, "speck") == 0
+    m = metrics(trial(tmp_path, "speck"))
+    decided = next(c for c in m["edit_coverage_views"] if c.get("decides"))
+    assert decided["coverage"] == 0.0
+    if speck == 1:
+        assert decided["changed_px"] < 0.002 * 32 * 32 and decided["too_small_to_judge"]
+        assert "stopped" not in m
+    else:
+        assert decided["changed_px"] > 30 and m["stopped"] == "edit outside the region"
+
+
 def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     m = metrics(reference["trial"])
     assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5
