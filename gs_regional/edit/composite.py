@@ -132,5 +132,8 @@ def composite_target(
         if added is not None and margin_px > 0:
             # Beyond the region only clear changes count (the editor's bleed is a change too, but
             # weaker than what it paints): the margin's threshold leaves the tone drift in.
-            weight = torch.maximum(weight, (near & (raw_change > noise_sigmas * raw_noise)).to(weight.dtype))
+            # What a blurred source explains is no change here either: the seams between parts,
+            # which regenerating the view softens, are no room for new geometry.
+            margin_change = regeneration_change(edited, source)
+            weight = torch.maximum(weight, (near & (margin_change > noise_sigmas * raw_noise)).to(weight.dtype))
     return weight[..., None] * edited + (1 - weight[..., None]) * source
