@@ -476,6 +476,39 @@ def test_a_first_edit_that_shows_nothing_is_checked_in_another_view(tmp_path, mo
     assert m["v_first"] == checked[1]["view"] and checked[1]["decides"] and m["edit_coverage"] == checked[1]["coverage"] >= 0.5
 
 
+@pytest.mark.parametrize("others_agree", [True, False])
+def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree(tmp_path, monkeypatch, others_agree):
+    """A full edit can place a new object pixels off its part, or an object sticking out of its
+    part lies mostly beside it: its first view alone then says "elsewhere" while the view where the
+    2D masks and the selection overlap most says "in the selection". A third view decides. Known
+    answer: the first full edit changes only a square far from the head (clearly elsewhere): when
+    the other views edit in place the run goes on and initializes from the second view; when the
+    third view's edit is such a square too, the run stops."""
+    from gs_regional.sim import editor as sim_editor
+
+    edit, full_edits = sim_editor.SimulatedEditor._edit, []
+
+    def moved(self, images, cond_images, prompt, t_start, seeds, cameras):
+        out = edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+        if t_start is None:
+            full_edits.append(cameras[0].image_name)
+            if len(full_edits) == 1 or (len(full_edits) == 3 and not others_agree):
+                out = images.clone()
+                out[:, -10:-2, 2:10] = 1.0 - out[:, -10:-2, 2:10]  # a square in a corner, nowhere near the head
+        return out
+
+    monkeypatch.setattr(sim_editor.SimulatedEditor, "_edit", moved)
+    name = f"moved{int(others_agree)}"
+    assert launch(tmp_path, name) == 0
+    m = metrics(trial(tmp_path, name))
+    checked = m["edit_coverage_views"]
+    assert len(checked) == 3 and checked[0]["coverage"] < 0.25 and checked[1]["coverage"] >= 0.5
+    if others_agree:
+        assert "stopped" not in m and checked[1]["decides"] and m["v_first"] == checked[1]["view"]
+    else:
+        assert m["stopped"] == "edit outside the region" and checked[0]["decides"]
+
+
 @pytest.mark.parametrize("speck", [1, 6])
 def test_a_change_too_small_to_place_does_not_stop_the_run(tmp_path, monkeypatch, speck):
     """Every full edit changes one square of `speck` x `speck` pixels in a corner, far from the head

@@ -401,6 +401,20 @@ class RegionalEdit(EditSystemBase):
                     self.v_first, edited, check = u, edited_u, check_u
                 elif check["coverage"] >= low / 2:
                     check = check_u
+                elif (check_u["coverage"] or 0.0) >= low:
+                    # The two views disagree: the first edit lies clearly elsewhere (a full edit
+                    # may place a new object pixels off; an object sticking out of its part lies
+                    # mostly beside it), the second in the selection. A third view, the next by
+                    # overlap, decides between them: unless it too lies clearly elsewhere (under
+                    # half the minimum), the run goes on, initialized from the second view.
+                    overlap[views.index(u)] = -1.0
+                    w = views[int(torch.argmax(overlap))]
+                    if float(overlap.max()) >= 0 and w not in (u, self.v_first):
+                        _, check_w = first_edit(w)
+                        checked.append(check_w)
+                        log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, w, check_w)
+                        if (check_w["coverage"] or 0.0) >= low / 2:
+                            self.v_first, edited, check = u, edited_u, check_u
         coverage = check["coverage"]
         check["decides"] = True
         v = self.v_first
