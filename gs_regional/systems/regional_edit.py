@@ -405,15 +405,17 @@ class RegionalEdit(EditSystemBase):
                     # The two views disagree: the first edit lies clearly elsewhere (a full edit
                     # may place a new object pixels off; an object sticking out of its part lies
                     # mostly beside it), the second in the selection. A third view, the next by
-                    # overlap, decides between them: unless it too lies clearly elsewhere (under
-                    # half the minimum), the run goes on, initialized from the second view.
+                    # overlap, decides between them: when it agrees with the second, the run goes
+                    # on, initialized from the second view. (Only a view that agrees: at leakage
+                    # 1.5 the body is selected in the head's place and a third view "only just
+                    # missing" it, 0.48, would let the wrong selection through.)
                     overlap[views.index(u)] = -1.0
                     w = views[int(torch.argmax(overlap))]
                     if float(overlap.max()) >= 0 and w not in (u, self.v_first):
                         _, check_w = first_edit(w)
                         checked.append(check_w)
                         log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, w, check_w)
-                        if (check_w["coverage"] or 0.0) >= low / 2:
+                        if (check_w["coverage"] or 0.0) >= low:
                             self.v_first, edited, check = u, edited_u, check_u
         coverage = check["coverage"]
         check["decides"] = True
