@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """A truth suite that cannot be memorized: known edits drawn at random from a seed it prints.
 
-    python scripts/truth_suite.py [--seed N] [--cases 24] [--quick] [--out outputs/truth_suite]
+    python scripts/truth_suite.py [--seed N] [--cases 24] [--quick] [--out outputs/truth_suite] [key=value ...]
     make truth-suite [SEED=N]
 
 Each run draws `--cases` (default 24) known edits from a fresh random seed, printed first (`--seed N`
@@ -554,8 +554,9 @@ def resolve_only(seed: int, n_cases: int, quick: bool, out: str) -> int:
     return 0
 
 
-def run_suite(seed: int, n_cases: int, quick: bool, out: str) -> dict:
+def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = ()) -> dict:
     s = settings(quick)
+    s["budget"] = s["budget"] + list(overrides)  # every case's launch.py overrides
     cases = draw(seed, n_cases, quick)
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
@@ -736,6 +737,8 @@ def main(argv=None) -> int:
     ap.add_argument("--resolve-only", action="store_true",
                     help="prepare the scenes and place every drawn case on its splat (anchors, truth counts), no runs")
     ap.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
+    ap.add_argument("overrides", nargs="*", help="launch.py overrides (key=value) for every case, e.g. an ablation: "
+                    "system.localize_with_truth=true")
     args = ap.parse_args(argv)
     if args.replot:
         with open(os.path.join(args.out, JSON_NAME)) as f:
@@ -755,7 +758,7 @@ def main(argv=None) -> int:
             return resolve_only(seed, n, args.quick, args.out)
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, min(args.threads or cores, cores)))
-        payload = run_suite(seed, n, args.quick, args.out)
+        payload = run_suite(seed, n, args.quick, args.out, args.overrides)
     chart(payload, os.path.join(args.out, PNG_NAME))
     result = print_report(payload)
     if "wall_seconds" in payload:

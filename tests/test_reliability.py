@@ -509,6 +509,15 @@ def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree(tmp_p
         assert m["stopped"] == "edit outside the region" and checked[0]["decides"]
 
 
+def test_the_truth_as_selection_ablation_edits_the_true_region(tmp_path):
+    """`system.localize_with_truth=true` (scenes with a known edit): localization runs, the true
+    region is the selection; what the rest of the method loses to localization is then measurable
+    (scripts/truth_suite.py ... system.localize_with_truth=true)."""
+    assert launch(tmp_path, "truth", "system.localize_with_truth=true") == 0
+    m = metrics(trial(tmp_path, "truth"))
+    assert m["mask_iou"] == 1.0 and "stopped" not in m and m["view_agreement"] is not None
+
+
 @pytest.mark.parametrize("speck", [1, 6])
 def test_a_change_too_small_to_place_does_not_stop_the_run(tmp_path, monkeypatch, speck):
     """Every full edit changes one square of `speck` x `speck` pixels in a corner, far from the head

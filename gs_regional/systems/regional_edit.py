@@ -138,6 +138,9 @@ class RegionalEdit(EditSystemBase):
         depth_type: str = "depth-anything"
         depth: dict = field(default_factory=dict)
         localize: bool = True  # ablation: false selects every Gaussian
+        # Ablation for scenes with a known edit: the true region is the selection (localization
+        # still runs; mask_iou is then 1), to measure what the rest of the method loses to it.
+        localize_with_truth: bool = False
         initialize: bool = True  # ablation: false adds no Gaussians from depth
         localization: LocalizeConfig = field(default_factory=LocalizeConfig)
         init: InitConfig = field(default_factory=InitConfig)
@@ -284,6 +287,11 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
+        if cfg.localize_with_truth:
+            if self.scene.ground_truth is None:
+                raise ConfigError("system.localize_with_truth=true needs a scene with a known edit (a ground truth: "
+                                  "data_type synthetic-scene or splat-truth)")
+            selected = self.scene.ground_truth.region.to(self.device)
         g.mask.copy_(selected)
         # The localized region as rows of the source scene: what the composite and the evaluation
         # render from the source, however densification and pruning move the rows later.
