@@ -171,7 +171,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     assert total > 0 and near / total >= 0.9, (near, total)
     # The plain difference sees the blurred edges as change: the test can tell the two apart.
     calm = ~dilate(region, 2)
-    plain, _ = real_change(edited, source, calm, 4.0, explain_blur=False)
+    plain, _, _ = real_change(edited, source, calm, 4.0, explain_blur=False)
     assert float(plain[dilate(region, 2)].sum() / plain.sum()) < 0.5
 
 

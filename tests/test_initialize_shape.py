@@ -2,6 +2,7 @@
 a recolour adds (close to) none, an addition adds next to the true new Gaussians, and a
 calibration that cannot be trusted falls back to densification with a warning in metrics.json."""
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ VIEW = 10  # a frontal view of the face (the demo picks it as its first edited v
 
 
 def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96,
-               editor_seed: int = 0, fill: bool = False, cfg: InitConfig = InitConfig()):
+               editor_seed: int = 0, fill: bool = False, cfg: Optional[InitConfig] = None):
     """new_gaussians_from_depth at `view` (a frontal one by default) of the synthetic `edit`, with
     the true 2D region (`fill`: a region covering every rendered pixel, none left to calibrate on)."""
     gt = make_edit(edit)
@@ -38,7 +39,7 @@ def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: 
             region = out["alpha"].reshape(region.shape) > 0.01
         disp = depth.disparity(torch.stack([out["rgb"], edited]), cameras=[cam, cam])
         params, report, _ = new_gaussians_from_depth(
-            cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], cfg, 0,
+            cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], cfg or InitConfig(), 0,
             region_means=gt.source.means[gt.region],
         )
     return gt, params, report

@@ -27,7 +27,7 @@ def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, 
     With `explain_blur`, what a blurred source explains is no change (`regeneration_change`);
     `blur_in_noise=False` measures the noise on the plain difference instead of on that one.
     Returns ((H, W) in [0, 1]: 0 up to `noise_sigmas` x that noise, 1 from twice that; the
-    tone-matched `edited`)."""
+    tone-matched `edited`; the (H, W) change it was measured on, before the noise threshold)."""
     fit = calm if tone is None else calm & tone
     if int(fit.sum()) >= MIN_TONE_PIXELS:  # enough pixels to see what regenerating the view did to its tone
         edited = match_colors(edited, source, fit, max_gain=MAX_TONE_GAIN)
@@ -36,7 +36,7 @@ def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, 
     change = regeneration_change(edited, source) if explain_blur else plain
     noise = change if blur_in_noise else plain
     threshold = max(noise_sigmas * 1.4826 * float(noise[calm].median()), 1.0 / 255)
-    return ((change - threshold) / threshold).clamp(0, 1), edited
+    return ((change - threshold) / threshold).clamp(0, 1), edited, change
 
 
 REGEN_BLURS = (0.5, 1.0, 1.5, 2.0)  # px: the detail a regenerated view may lose
@@ -80,7 +80,7 @@ def edit_change(
     # regenerating the view softens, would outweigh a small edit. The noise is measured on the
     # plain difference: blur-explained, it falls so low on small views (48²) that those edges
     # count as changes again.
-    changed, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
+    changed, _, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
     return float(changed[near].sum()), float(changed.sum())
 
@@ -127,13 +127,12 @@ def composite_target(
         # Inside the object, 2 px from its silhouette: there the regenerated view's blur mixes
         # the object with the background, which is no tone drift.
         inside = None if opaque is None else ~dilate(~opaque, 2)
-        changed, edited = real_change(edited, source, far, noise_sigmas, tone=inside)
+        changed, edited, change = real_change(edited, source, far, noise_sigmas, tone=inside)
         weight = weight * changed
         if added is not None and margin_px > 0:
             # Beyond the region only clear changes count (the editor's bleed is a change too, but
             # weaker than what it paints): the margin's threshold leaves the tone drift in.
-            # What a blurred source explains is no change here either: the seams between parts,
-            # which regenerating the view softens, are no room for new geometry.
-            margin_change = regeneration_change(edited, source)
-            weight = torch.maximum(weight, (near & (margin_change > noise_sigmas * raw_noise)).to(weight.dtype))
+            # What a blurred source explains is no change here either (`change` is real_change's):
+            # the seams between parts, which regenerating the view softens, are no room for new geometry.
+            weight = torch.maximum(weight, (near & (change > noise_sigmas * raw_noise)).to(weight.dtype))
     return weight[..., None] * edited + (1 - weight[..., None]) * source

@@ -122,20 +122,27 @@ def changed_pixels(change: torch.Tensor, threshold: float) -> torch.Tensor:
     return above & (neighbours >= 0.5)
 
 
-def uncalibrated_shape_change(disp_unedited: torch.Tensor, disp_edited: torch.Tensor, valid: torch.Tensor,
+def clearly_changed(changed: int, expected_by_noise: float, region_pixels: int, cfg: InitConfig) -> bool:
+    """Whether `changed` pixels of a region are a change of shape: clearly more than the noise's
+    `expected_by_noise` (Poisson: mean + 3 std + 1) and at least `min_changed_fraction` of the
+    region (a silhouette a pixel off is no new object)."""
+    return changed > max(expected_by_noise + 3 * expected_by_noise ** 0.5 + 1, cfg.min_changed_fraction * region_pixels)
+
+
+def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor,
                               region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
     """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
     two monocular disparities alone, for a view with no pixels to calibrate on (the region fills
-    it): the estimator sees the edited and the unedited image alike, so the edited disparity is
-    mapped onto the unedited one by a robust affine fit over every opaque (`valid`) pixel, which a
+    it): the estimator sees the edited and the unedited image alike, so the edited disparity `de` is
+    mapped onto the unedited one `du` by a robust affine fit over every opaque (`valid`) pixel, which a
     change of shape covering a minority of them does not move. What is left, in units of the
     disparity's spread, is noise, except where new geometry came nearer; noise goes both ways, so
     the pixels that moved *back* by as much say how many nearer ones it explains. The shape changed
     when the nearer pixels in the region clearly exceed that count and `min_changed_fraction` of
-    the region. None when there are too few opaque pixels to tell."""
+    the region. The disparities come median-filtered (`cfg.median`). None when there are too few
+    opaque pixels to tell."""
     if int(valid.sum()) < MIN_UNCALIBRATED_PIXELS:
         return None
-    du, de = median_filter(disp_unedited, cfg.median), median_filter(disp_edited, cfg.median)
     a, b = robust_affine(de, du, valid)
     spread = float((du[valid] - du[valid].median()).abs().mean())
     if not spread > 0:
@@ -145,9 +152,8 @@ def uncalibrated_shape_change(disp_unedited: torch.Tensor, disp_edited: torch.Te
     threshold = cfg.noise_sigmas * max(noise, 1e-6)
     nearer = int((changed_pixels(change, threshold) & region).sum())
     farther = int((changed_pixels(-change, threshold) & region).sum())
-    needed = max(farther + 3 * farther ** 0.5 + 1, cfg.min_changed_fraction * int(region.sum()))
     return {"nearer_pixels": nearer, "farther_pixels": farther, "noise": round(noise, 5),
-            "shape_changed": nearer > needed}
+            "shape_changed": clearly_changed(nearer, farther, int(region.sum()), cfg)}
 
 
 def _rejected(report: dict, reason: str) -> tuple:
@@ -178,6 +184,8 @@ def new_gaussians_from_depth(
     calib_px = calibration_pixels(alpha_3dgs, region, cfg)
     region = dilate(region, cfg.dilate_px)
     report = {"calibration_pixels": int(calib_px.sum())}
+    disp_unedited = median_filter(disp_unedited, cfg.median)
+    disp_edited = median_filter(disp_edited, cfg.median)
     if report["calibration_pixels"] < max(cfg.min_calibration_pixels, 16):
         # No depth to place new geometry at; whether the shape changes at all can still be told.
         change = uncalibrated_shape_change(disp_unedited, disp_edited, valid, region, cfg)
@@ -192,8 +200,6 @@ def new_gaussians_from_depth(
     far = float(depth_3dgs.detach()[valid].max())
     d3 = torch.where(valid, depth_3dgs, torch.full_like(depth_3dgs, far))
     disp_3dgs = 1.0 / d3
-    disp_unedited = median_filter(disp_unedited, cfg.median)
-    disp_edited = median_filter(disp_edited, cfg.median)
     a_u, b_u = robust_affine(disp_unedited, disp_3dgs, calib_px)
     a_e, b_e = robust_affine(disp_edited, disp_3dgs, calib_px)
     # The edited view is put on the unedited view's calibration (`a_u`, `b_u`) through a map of its
@@ -243,13 +249,11 @@ def new_gaussians_from_depth(
     depth_changed = changed_pixels(relative_change, threshold)  # nearer by more than the noise
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
-    # whose changed pixels are not clearly more than that rate predicts (Poisson: mean + 3 std + 1)
-    # has no change of shape (a recolour), and gets no Gaussians.
-    # A handful of pixels (a silhouette a pixel off) is no new object either: fewer than
-    # `min_changed_fraction` of the region's pixels is no change of shape.
+    # whose changed pixels are not clearly more than that rate predicts has no change of shape (a
+    # recolour), and gets no Gaussians.
     expected = float(depth_changed[calib_px].float().mean()) * int(region.sum())
     report.update(noise_changed_pixels=round(expected, 2))
-    if int(candidates.sum()) <= max(expected + 3 * expected ** 0.5 + 1, cfg.min_changed_fraction * int(region.sum())):
+    if not clearly_changed(int(candidates.sum()), expected, int(region.sum()), cfg):
         candidates = torch.zeros_like(candidates)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True

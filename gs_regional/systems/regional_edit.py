@@ -220,6 +220,9 @@ class RegionalEdit(EditSystemBase):
                  "non-increasing (each cycle starts from less noise than the one before, e.g. [750, 500, 250])", t)
 
     def check_scene(self) -> None:
+        if self.cfg.localize_with_truth and self.scene.ground_truth is None:
+            raise ConfigError("system.localize_with_truth=true needs a scene with a known edit (a ground truth: "
+                              "data_type synthetic-scene or splat-truth)")
         n = len(self.scene.train_indices)
         if self.cfg.refine.m >= n - 1:
             log.warning("system.refine.m=%d: the scene has %d training views, so every cycle edits all of them",
@@ -287,10 +290,7 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
-        if cfg.localize_with_truth:
-            if self.scene.ground_truth is None:
-                raise ConfigError("system.localize_with_truth=true needs a scene with a known edit (a ground truth: "
-                                  "data_type synthetic-scene or splat-truth)")
+        if cfg.localize_with_truth:  # check_scene made sure there is a truth
             selected = self.scene.ground_truth.region.to(self.device)
         g.mask.copy_(selected)
         # The localized region as rows of the source scene: what the composite and the evaluation
