@@ -387,7 +387,7 @@ class RegionalEdit(EditSystemBase):
         edited, check = first_edit(self.v_first)
         checked = [check]
         low = cfg.localization.min_edit_coverage
-        if check["coverage"] is not None and check["coverage"] < low and len(views) > 1:
+        if check["coverage"] is not None and check["coverage"] < low:
             # One edit of one view is thin evidence for throwing the run away. The view where the
             # editor's 2D masks and the selection overlap most is edited too, and decides when
             # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
@@ -397,10 +397,11 @@ class RegionalEdit(EditSystemBase):
             masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
                        for k, u in enumerate(views)]
             overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
-            overlap = torch.where(areas < 0, torch.full_like(overlap, -1.0), overlap)  # not calibratable
-            overlap[views.index(self.v_first)] = -1.0
-            u = views[int(torch.argmax(overlap))]
-            if u != self.v_first:
+            # The other views that can be calibrated (areas < 0: not), by overlap.
+            others = [views[i] for i in torch.argsort(overlap, descending=True, stable=True).tolist()
+                      if views[i] != self.v_first and areas[i] >= 0]
+            if others:
+                u = others[0]
                 edited_u, check_u = first_edit(u)
                 checked.append(check_u)
                 log.info("initialize: the first edit (view %d) lies outside the selection: %s; view %d: %s",
@@ -409,7 +410,7 @@ class RegionalEdit(EditSystemBase):
                     self.v_first, edited, check = u, edited_u, check_u
                 elif check["coverage"] >= low / 2:
                     check = check_u
-                elif (check_u["coverage"] or 0.0) >= low:
+                elif (check_u["coverage"] or 0.0) >= low and len(others) > 1:
                     # The two views disagree: the first edit lies clearly elsewhere (a full edit
                     # may place a new object pixels off; an object sticking out of its part lies
                     # mostly beside it), the second in the selection. A third view, the next by
@@ -417,14 +418,11 @@ class RegionalEdit(EditSystemBase):
                     # on, initialized from the second view. (Only a view that agrees: at leakage
                     # 1.5 the body is selected in the head's place and a third view "only just
                     # missing" it, 0.48, would let the wrong selection through.)
-                    overlap[views.index(u)] = -1.0
-                    w = views[int(torch.argmax(overlap))]
-                    if float(overlap.max()) >= 0 and w not in (u, self.v_first):
-                        _, check_w = first_edit(w)
-                        checked.append(check_w)
-                        log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, w, check_w)
-                        if (check_w["coverage"] or 0.0) >= low:
-                            self.v_first, edited, check = u, edited_u, check_u
+                    _, check_w = first_edit(others[1])
+                    checked.append(check_w)
+                    log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, others[1], check_w)
+                    if (check_w["coverage"] or 0.0) >= low:
+                        self.v_first, edited, check = u, edited_u, check_u
         coverage = check["coverage"]
         check["decides"] = True
         v = self.v_first
