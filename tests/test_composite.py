@@ -203,3 +203,48 @@ def test_the_margin_left_for_new_geometry_does_not_take_the_blur_of_regenerating
     assert psnr(target[seam], source[seam]) >= 60, "the softened seam became a target"
     kept = (target[new] - source[new]).abs().mean() / (edited[new] - source[new]).abs().mean()
     assert kept >= 0.9, "the new object was not kept"
+
+
+def _head_on_body(gen, h=48, w=48):
+    """A blue body filling the view, parts of other colours, a skin-coloured head (the region)."""
+    source = torch.full((h, w, 3), 0.3)
+    source[:, :, 2] = 0.7
+    for k in range(4):
+        y, x = 2 + 11 * k, 38 + (5 * k) % 6
+        source[y:y + 6, x:x + 7] = torch.rand(3, generator=gen)
+    region = torch.zeros(h, w, dtype=torch.bool)
+    region[10:24, 14:34] = True
+    source[region] = torch.tensor([0.9, 0.75, 0.6])
+    return source, region
+
+
+def test_recoloured_fraction_tells_an_addition_from_an_addition_that_recolours():
+    """An edit that adds geometry trains the source's colours only when it recolours the region
+    besides (refine.min_recoloured_fraction): free, they learnt every view's jittered copy of the
+    new object and drifted the longer refinement ran. Known answers on one regenerated (blurred,
+    noisy, tone-shifted) view: a dark object drawn on the head recolours nothing beside it; the
+    same object on a head turned green recolours all of the rest; a head half green, half."""
+    from gs_regional.edit.composite import recoloured_fraction
+
+    gen = torch.Generator().manual_seed(0)
+    source, region = _head_on_body(gen)
+    regenerated = gaussian_blur(source.permute(2, 0, 1), 1.0).permute(1, 2, 0) * 1.03 + 0.01
+    regenerated = regenerated + 0.005 * torch.randn(regenerated.shape, generator=gen)
+    obj = torch.zeros_like(region)
+    obj[18:22, 18:30] = True  # the new object (a moustache), where the added Gaussians render
+    calm = ~dilate(region, 3)
+    rest = region & ~dilate(obj, 2)
+
+    def fraction(recolour):
+        edited = regenerated.clone()
+        edited[recolour] = torch.tensor([0.2, 0.8, 0.3])
+        edited[obj] = torch.tensor([0.1, 0.08, 0.05])
+        return recoloured_fraction(edited, source, region, obj, calm)
+
+    assert fraction(torch.zeros_like(region)) < 0.05
+    assert fraction(region) > 0.95
+    half = region.clone()
+    half[:, :24] = False
+    expected = float((half & rest).sum() / rest.sum())
+    assert abs(fraction(half) - expected) < 0.1, (fraction(half), expected)
+    assert recoloured_fraction(regenerated, source, obj, obj, calm) is None  # nothing beside the object

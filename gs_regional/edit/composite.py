@@ -58,6 +58,26 @@ def regeneration_change(edited: torch.Tensor, source: torch.Tensor) -> torch.Ten
     return change
 
 
+def recoloured_fraction(
+    edited: torch.Tensor,  # (H, W, 3) the editor's full edit of a view
+    source: torch.Tensor,  # (H, W, 3) render of the unedited scene
+    region: torch.Tensor,  # (H, W) bool: where the localized Gaussians render
+    added: torch.Tensor,  # (H, W) bool: where the Gaussians the edit added render
+    calm: torch.Tensor,  # (H, W) bool: pixels the edit leaves alone (the editor's noise is measured there)
+    noise_sigmas: float = 4.0,
+    margin_px: int = 2,
+) -> Optional[float]:
+    """The fraction of the region's pixels, beyond `margin_px` of the added geometry, whose colour
+    the editor really changed (`real_change`): what the edit recolours besides what it adds. The
+    added object's rim, shadow and bleed fall within the margin. None when no pixel of the
+    region lies beyond it, or fewer than 16 are calm."""
+    rest = region & ~dilate(added, margin_px)
+    if not bool(rest.any()) or int(calm.sum()) < 16:
+        return None
+    changed, _, _ = real_change(edited, source, calm, noise_sigmas)
+    return float((changed[rest] >= 0.5).float().mean())
+
+
 def edit_change(
     edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
     source: torch.Tensor,  # (H, W, 3) render of the unedited scene

@@ -9,7 +9,7 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import composite_target, edit_change
+from gs_regional.edit.composite import composite_target, edit_change, recoloured_fraction
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
@@ -101,6 +101,13 @@ class RefineConfig:
     # region's Gaussians grow over their neighbours and follow every view's jittered target
     # (docs/method.md). [] frees them all (an edit that must move or remove source geometry).
     source_fixed: List[str] = field(default_factory=lambda: ["means", "quats", "log_scales", "opacity_logits"])
+    # An edit that adds Gaussians from depth leaves the selected source Gaussians their colours too
+    # when the first edited view recolours less than this fraction of the region beside what was
+    # added (metrics.json `init.recoloured_fraction`): the edit adds and recolours nothing, and
+    # free colours would only learn each view's jittered copy of the new object and the editor's
+    # bleed (they drift further the longer refinement runs). The added Gaussians, and those
+    # densified from them, draw the object. 0: the source's colours always train.
+    min_recoloured_fraction: float = 0.3
     # Keep each edited view only where the localized Gaussians render (weighted by how much of the
     # pixel they cover) and the source render elsewhere: the 2D editor's changes outside the region
     # (bleed, the blur and tone drift of regenerating the image) never become targets.
@@ -198,6 +205,8 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.composite_full_coverage <= 1, "refine.composite_full_coverage", "a fraction in [0, 1]",
              r.composite_full_coverage)
         need(r.recolour_lr_scale >= 0, "refine.recolour_lr_scale", "a number >= 0", r.recolour_lr_scale)
+        need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
+             r.min_recoloured_fraction)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
         need(r.views_per_step is None or r.views_per_step >= 1, "refine.views_per_step",
@@ -488,6 +497,15 @@ class RegionalEdit(EditSystemBase):
                 n = params["means"].shape[0]
                 if n:
                     rows.append(g, params, optimizer=self.optimizers().optimizer, mask=True, generation=1)
+                    # Does the edit recolour the region besides adding to it? (set_trainable)
+                    cam = scene.cameras[v].to(self.device)
+                    region_v = regions[views.index(v)]
+                    report["recoloured_fraction"] = recoloured_fraction(
+                        edited, self.source_renders[v], region_v,
+                        render_selection(g, self.renderer, cam, g.generation > 0) > 0.05,
+                        calibration_pixels(self.source_alpha(v), region_v, cfg.init), cfg.refine.composite_noise_sigmas)
+                    log.info("initialize: the first edit recolours %s of the region beside the added Gaussians",
+                             report["recoloured_fraction"])
                 self.counts["added_init"] = n
                 self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
                 self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
@@ -521,8 +539,9 @@ class RegionalEdit(EditSystemBase):
         g = self.geometry
         # "editable" = mask | generation > 0, re-evaluated at every backward pass.
         g.set_trainable_mask(None if self.cfg.refine.optimize_all else "editable")
-        if not self.cfg.refine.optimize_all and self.shape_may_change and self.cfg.refine.source_fixed:
-            g.set_added_only(self.cfg.refine.source_fixed)
+        fixed = list(self.cfg.refine.source_fixed) + (list(SHAPE_FREE_PARAMS) if self.adds_only else [])
+        if not self.cfg.refine.optimize_all and self.shape_may_change and fixed:
+            g.set_added_only(sorted(set(fixed), key=fixed.index))
         if not self.cfg.refine.optimize_all and not self.shape_may_change:
             # A recolour: the region's Gaussians keep their shape and opacity, only their colours
             # train (left free, they grow and move into the unedited surroundings).
@@ -587,6 +606,14 @@ class RegionalEdit(EditSystemBase):
         """False when depth initialization ran, was trusted and found no change of shape."""
         report = getattr(self, "init_report", None)
         return not (self.cfg.initialize and report is not None and "rejected" not in report and report["added"] == 0)
+
+    @property
+    def adds_only(self) -> bool:
+        """True when depth initialization added Gaussians and the first edit recolours under
+        `refine.min_recoloured_fraction` of the region beside them: the source keeps its colours."""
+        report = getattr(self, "init_report", None) or {}
+        fraction = report.get("recoloured_fraction")
+        return fraction is not None and fraction < self.cfg.refine.min_recoloured_fraction
 
     def composite(self, index: int, edited: torch.Tensor) -> torch.Tensor:
         """The target of view `index`: `edited` where the edit is (composite_target), the source
