@@ -175,6 +175,20 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     assert float(plain[dilate(region, 2)].sum() / plain.sum()) < 0.5
 
 
+def _head_on_body(gen, h=48, w=48):
+    """A blue body filling the view, parts of other colours away from the head (the tone fit's
+    contrast), and a skin-coloured head: the region."""
+    source = torch.full((h, w, 3), 0.3)
+    source[:, :, 2] = 0.7
+    for k in range(4):
+        y, x = 2 + 11 * k, 38 + (5 * k) % 6
+        source[y:y + 6, x:x + 7] = torch.rand(3, generator=gen)
+    region = torch.zeros(h, w, dtype=torch.bool)
+    region[10:24, 14:34] = True
+    source[region] = torch.tensor([0.9, 0.75, 0.6])
+    return source, region
+
+
 def test_the_margin_left_for_new_geometry_does_not_take_the_blur_of_regenerating_the_view():
     """An edit that may add geometry keeps clear changes within a margin of the region: room for
     the new object. A regenerated view softens every sharp edge, and the seam between the region
@@ -184,14 +198,7 @@ def test_the_margin_left_for_new_geometry_does_not_take_the_blur_of_regenerating
     keeps the object and leaves the seam as the source renders it."""
     gen = torch.Generator().manual_seed(0)
     h = w = 48
-    source = torch.full((h, w, 3), 0.3)
-    source[:, :, 2] = 0.7  # a blue "body" filling the view ...
-    for k in range(4):  # with other parts of other colours away from the head (the tone fit's contrast)
-        y, x = 2 + 11 * k, 38 + (5 * k) % 6
-        source[y:y + 6, x:x + 7] = torch.rand(3, generator=gen)
-    region = torch.zeros(h, w, dtype=torch.bool)
-    region[10:24, 14:34] = True
-    source[region] = torch.tensor([0.9, 0.75, 0.6])  # ... under a skin-coloured "head", a sharp seam all round
+    source, region = _head_on_body(gen, h, w)  # a sharp seam all round the head
     edited = gaussian_blur(source.permute(2, 0, 1), 1.0).permute(1, 2, 0)
     edited = edited + 0.005 * torch.randn(edited.shape, generator=gen)
     new = torch.zeros_like(region)
@@ -203,19 +210,6 @@ def test_the_margin_left_for_new_geometry_does_not_take_the_blur_of_regenerating
     assert psnr(target[seam], source[seam]) >= 60, "the softened seam became a target"
     kept = (target[new] - source[new]).abs().mean() / (edited[new] - source[new]).abs().mean()
     assert kept >= 0.9, "the new object was not kept"
-
-
-def _head_on_body(gen, h=48, w=48):
-    """A blue body filling the view, parts of other colours, a skin-coloured head (the region)."""
-    source = torch.full((h, w, 3), 0.3)
-    source[:, :, 2] = 0.7
-    for k in range(4):
-        y, x = 2 + 11 * k, 38 + (5 * k) % 6
-        source[y:y + 6, x:x + 7] = torch.rand(3, generator=gen)
-    region = torch.zeros(h, w, dtype=torch.bool)
-    region[10:24, 14:34] = True
-    source[region] = torch.tensor([0.9, 0.75, 0.6])
-    return source, region
 
 
 def test_recoloured_fraction_tells_an_addition_from_an_addition_that_recolours():
