@@ -263,6 +263,9 @@ def test_resume_with_a_changed_config_says_what_changed_and_refuses_what_breaks_
     assert "system.refine.iterations_per_cycle: 4 -> 2" in line and str(ckpt) in line, line
     assert launch(tmp_path, "changed", f"resume={ckpt}", "system.prompt=something else") == 2
     assert "system.prompt" in last_error_line(capsys)
+    # Decided at initialization (which source parameters train): a change would be silently ignored.
+    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.min_recoloured_fraction=0") == 2
+    assert "system.refine.min_recoloured_fraction" in last_error_line(capsys)
     # A change that leaves the checkpoint meaningful: the run goes on and says what changed.
     assert launch(tmp_path, "changed", f"resume={ckpt}", "system.eval.max_test_views=1") == 0
     said = [r.getMessage() for r in caplog.records if "config differs from the checkpoint" in r.getMessage()]

@@ -166,7 +166,8 @@ class RegionalEdit(EditSystemBase):
 
     # Settings a resume must keep (launch.py refuses a change): the step -> cycle mapping, and the
     # stages that a checkpoint has usually passed already (a change would be silently ignored).
-    RESUME_FIXED_KEYS: ClassVar[tuple] = ("refine.iterations_per_cycle", "localize", "localization", "initialize", "init")
+    RESUME_FIXED_KEYS: ClassVar[tuple] = ("refine.iterations_per_cycle", "localize", "localization", "initialize", "init",
+                                          "refine.source_fixed", "refine.min_recoloured_fraction")
 
     def __init__(self, cfg=None, resumed: bool = False) -> None:
         super().__init__(cfg, resumed=resumed)
