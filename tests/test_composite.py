@@ -167,7 +167,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     small = torch.zeros_like(region)
     small[30:34, 52:56] = True  # the edit: a patch inside the region turned orange
     edited[small] = torch.tensor([0.9, 0.5, 0.1])
-    near, total = edit_change(edited, source, region)
+    near, total, _ = edit_change(edited, source, region)
     assert total > 0 and near / total >= 0.9, (near, total)
     # The plain difference sees the blurred edges as change: the test can tell the two apart.
     calm = ~dilate(region, 2)

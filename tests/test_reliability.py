@@ -554,3 +554,37 @@ def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     m = metrics(reference["trial"])
     assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5
     assert m["source_deleted"] == 0  # an edit that removes nothing keeps every source Gaussian
+
+
+def test_a_big_object_sticking_out_of_its_part_is_not_taken_for_an_edit_elsewhere(tmp_path, monkeypatch):
+    """A big object added on a small part (a big ball on the head) sticks out over what lies
+    behind: half or more of its change lies beside the selection in every view, and the coverage
+    check stopped such runs (466697 c18, c19: coverage 0.41 and 0.48). It covers the part, though,
+    and an edit placed on something else changes next to none of the selection. Known answer: the
+    first full edit paints the head and, below it over the body, one and a half times the head's
+    area: its coverage is under a half, it changes all of the head, and the run goes on from that one view."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    edit, full = SimulatedEditor._edit, []
+
+    def sticks_out(self, images, cond_images, prompt, t_start, seeds, cameras):
+        if t_start is not None:
+            return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+        full.append(cameras[0].image_name)
+        out = images.clone()
+        head = self.truth_renderer.region_maps(self._cameras(images, cameras, "edit")[0])[..., 0] > 0.5
+        rows, cols = head.nonzero(as_tuple=True)
+        r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+        beside = torch.zeros_like(head)  # the part of the object beside the head, over the body below it
+        beside[r1 + 3:r1 + 3 + (3 * (r1 - r0)) // 2, c0:c1] = True
+        beside &= ~head
+        out[0][head | beside] = torch.tensor([0.1, 0.9, 0.1])
+        return out
+
+    monkeypatch.setattr(SimulatedEditor, "_edit", sticks_out)
+    # At 64²: at TINY's 32² the painted band would be most of the body, where the editor's noise is measured.
+    assert launch(tmp_path, "big", "data.width=64", "data.height=64") == 0
+    m = metrics(trial(tmp_path, "big"))
+    first = m["edit_coverage_views"][0]
+    assert 0.25 <= first["coverage"] < 0.5 and first["region_changed"] >= 0.5, first
+    assert "stopped" not in m and first["decides"]

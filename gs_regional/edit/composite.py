@@ -86,9 +86,9 @@ def edit_change(
     margin_px: int = 2,
     noise_sigmas: float = 4.0,
 ) -> Optional[Tuple[float, float]]:
-    """(pixels of the editor's change within `margin_px` of `region`, pixels of it in all): the
-    change is `real_change`, beyond `noise_sigmas` x the editor's noise measured on the opaque
-    pixels beyond `margin_px` of `region`. Empty background (not `opaque`, not near the region) is
+    """(pixels of the editor's change within `margin_px` of `region`, pixels of it in all, the
+    fraction of `region`'s pixels it changes): the change is `real_change`, beyond `noise_sigmas`
+    x the editor's noise measured on the opaque pixels beyond `margin_px` of `region`. Empty background (not `opaque`, not near the region) is
     left out: no Gaussian renders there, and its noise, clipped at black, would set the threshold
     below the blur of regenerating the object. None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
@@ -102,7 +102,8 @@ def edit_change(
     # count as changes again.
     changed, _, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
-    return float(changed[near].sum()), float(changed.sum())
+    filled = float((changed[region] >= 0.5).float().mean()) if bool(region.any()) else 0.0
+    return float(changed[near].sum()), float(changed.sum()), filled
 
 
 def composite_target(

@@ -35,6 +35,12 @@ SHOWS_NOTHING = 0.15
 # pixels is too small to say where the edit is (at 64², 8 pixels: a small object a few pixels
 # across, or a jittered placement showing a pixel of it): it cannot stop the run.
 MIN_JUDGED_CHANGE = 0.002
+# A full edit puts its change in the selection when at least `min_edit_coverage` of it lies there,
+# or half of that while it changes at least this fraction of the selection's pixels: a big object
+# added on a small part sticks out of it over what lies behind (half or more of its change beside
+# the selection) but covers the part; an edit placed on something else changes next to none of
+# the selection (0-0.03 in the stability sweep's stops, 0.09-0.27 on the big balls put on a head).
+MIN_FILLED = 0.1
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
@@ -389,15 +395,21 @@ class RegionalEdit(EditSystemBase):
             counts = None if bool(g.mask.all()) else edit_change(
                 out, self.source_renders[u], localized[u], opaque=self.source_alpha(u) > 0.5,
                 noise_sigmas=cfg.refine.composite_noise_sigmas)
-            near, total = counts if counts is not None else (0.0, 0.0)
+            near, total, filled = counts if counts is not None else (0.0, 0.0, 0.0)
             return out, {"view": u, "coverage": near / total if total > 0 else None, "changed_px": round(total, 1),
-                         "region_px": int(localized[u].sum())}
+                         "region_px": int(localized[u].sum()), "region_changed": round(filled, 3)}
+
+        low = cfg.localization.min_edit_coverage
+
+        def agrees(c: dict) -> bool:
+            """The edit of view c["view"] lies in the selection (MIN_FILLED); None coverage: cannot be told."""
+            cov = c["coverage"]
+            return cov is None or cov >= low or (cov >= low / 2 and c["region_changed"] >= MIN_FILLED)
 
         # Does the editor edit what localization selected? (No ground truth needed.)
         edited, check = first_edit(self.v_first)
         checked = [check]
-        low = cfg.localization.min_edit_coverage
-        if check["coverage"] is not None and check["coverage"] < low:
+        if not agrees(check):
             # One edit of one view is thin evidence for throwing the run away. The view where the
             # editor's 2D masks and the selection overlap most is edited too, and decides when
             # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
@@ -420,7 +432,7 @@ class RegionalEdit(EditSystemBase):
                     self.v_first, edited, check = u, edited_u, check_u
                 elif check["coverage"] >= low / 2:
                     check = check_u
-                elif (check_u["coverage"] or 0.0) >= low and len(others) > 1:
+                elif check_u["coverage"] is not None and agrees(check_u) and len(others) > 1:
                     # The two views disagree: the first edit lies clearly elsewhere (a full edit
                     # may place a new object pixels off; an object sticking out of its part lies
                     # mostly beside it), the second in the selection. A third view, the next by
@@ -431,7 +443,7 @@ class RegionalEdit(EditSystemBase):
                     _, check_w = first_edit(others[1])
                     checked.append(check_w)
                     log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, others[1], check_w)
-                    if (check_w["coverage"] or 0.0) >= low:
+                    if check_w["coverage"] is not None and agrees(check_w):
                         self.v_first, edited, check = u, edited_u, check_u
         coverage = check["coverage"]
         check["decides"] = True
@@ -442,7 +454,7 @@ class RegionalEdit(EditSystemBase):
         self.save_image("initialize/first_view_edited.png", edited)
         self.localize_metrics["edit_coverage"] = coverage
         self.localize_metrics["edit_coverage_views"] = checked
-        if coverage is not None and coverage < low:
+        if not agrees(check):
             if check["changed_px"] >= self.min_judged_change(check["view"]):
                 self.add_time("initialize", time.perf_counter() - t0)
                 return False
@@ -659,7 +671,7 @@ class RegionalEdit(EditSystemBase):
                     "edit outside the region", f"initialize: the first edited view ({decided['view']}) changes the "
                     f"image outside the localized region: a fraction {decided['coverage']:.2f} of its change beyond "
                     f"the editor's noise lies in the region, below system.localization.min_edit_coverage="
-                    f"{lc.min_edit_coverage}{note}; "
+                    f"{lc.min_edit_coverage}, and it changes {decided['region_changed']:.2f} of the region's pixels{note}; "
                     "localization selected something other than what the editor edits.")
             parallel.check_agree(self, "initialization", [self.geometry.num_gaussians, self.v_first])
             self.save_stage_checkpoint()
