@@ -161,8 +161,8 @@ class RegionalEdit(EditSystemBase):
         # Densification during refinement. Its steps count within each cycle (never at a cycle's
         # last step); only the editable Gaussians are densified and pruned unless
         # refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
-        # The threshold (5e-4, 2.5x 3DGS's) and refine.prune_min_weight (1 px) sit at the knee of
-        # scripts/compactness.py: fewer Gaussians would cost quality, more add none.
+        # The threshold (5e-4, 2.5x 3DGS's) sits at the knee of scripts/compactness.py on the
+        # synthetic add: fewer Gaussians would cost quality, more add none (docs/results.md).
         densify: DensifyStrategy = field(
             default_factory=lambda: DensifyStrategy(
                 start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000,
