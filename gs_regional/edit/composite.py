@@ -85,12 +85,13 @@ def edit_change(
     opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
     margin_px: int = 2,
     noise_sigmas: float = 4.0,
-) -> Optional[Tuple[float, float]]:
+) -> Optional[Tuple[float, float, float]]:
     """(pixels of the editor's change within `margin_px` of `region`, pixels of it in all, the
     fraction of `region`'s pixels it changes): the change is `real_change`, beyond `noise_sigmas`
-    x the editor's noise measured on the opaque pixels beyond `margin_px` of `region`. Empty background (not `opaque`, not near the region) is
-    left out: no Gaussian renders there, and its noise, clipped at black, would set the threshold
-    below the blur of regenerating the object. None when fewer than 16 calm pixels are left."""
+    x the editor's noise measured on the opaque pixels beyond `margin_px` of `region`. Empty
+    background (not `opaque`, not near the region) is left out: no Gaussian renders there, and its
+    noise, clipped at black, would set the threshold below the blur of regenerating the object.
+    None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
     seen = torch.ones_like(near) if opaque is None else near | opaque.to(near.device)
     calm = seen & ~near

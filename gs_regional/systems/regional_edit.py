@@ -517,8 +517,10 @@ class RegionalEdit(EditSystemBase):
                         edited, self.source_renders[v], region_v,
                         render_selection(g, self.renderer, cam, g.generation > 0) > 0.05,
                         calibration_pixels(self.source_alpha(v), region_v, cfg.init), cfg.refine.composite_noise_sigmas)
-                    log.info("initialize: the first edit recolours %s of the region beside the added Gaussians",
-                             report["recoloured_fraction"])
+                    if report["recoloured_fraction"] is not None:
+                        log.info("initialize: the first edit recolours %.2f of the region beside the added Gaussians "
+                                 "(the source keeps its colours below system.refine.min_recoloured_fraction=%s)",
+                                 report["recoloured_fraction"], cfg.refine.min_recoloured_fraction)
                 self.counts["added_init"] = n
                 self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
                 self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
