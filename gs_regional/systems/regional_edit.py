@@ -402,14 +402,18 @@ class RegionalEdit(EditSystemBase):
         low = cfg.localization.min_edit_coverage
 
         def agrees(c: dict) -> bool:
-            """The edit of view c["view"] lies in the selection (MIN_FILLED); None coverage: cannot be told."""
+            """The edit of view c["view"] lies in the selection (MIN_FILLED); False when that cannot be told."""
             cov = c["coverage"]
-            return cov is None or cov >= low or (cov >= low / 2 and c["region_changed"] >= MIN_FILLED)
+            return cov is not None and (cov >= low or (cov >= low / 2 and c["region_changed"] >= MIN_FILLED))
+
+        def elsewhere(c: dict) -> bool:
+            """The edit of view c["view"] lies outside the selection (a global edit cannot be told)."""
+            return c["coverage"] is not None and not agrees(c)
 
         # Does the editor edit what localization selected? (No ground truth needed.)
         edited, check = first_edit(self.v_first)
         checked = [check]
-        if not agrees(check):
+        if elsewhere(check):
             # One edit of one view is thin evidence for throwing the run away. The view where the
             # editor's 2D masks and the selection overlap most is edited too, and decides when
             # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
@@ -432,7 +436,7 @@ class RegionalEdit(EditSystemBase):
                     self.v_first, edited, check = u, edited_u, check_u
                 elif check["coverage"] >= low / 2:
                     check = check_u
-                elif check_u["coverage"] is not None and agrees(check_u) and len(others) > 1:
+                elif agrees(check_u) and len(others) > 1:
                     # The two views disagree: the first edit lies clearly elsewhere (a full edit
                     # may place a new object pixels off; an object sticking out of its part lies
                     # mostly beside it), the second in the selection. A third view, the next by
@@ -443,7 +447,7 @@ class RegionalEdit(EditSystemBase):
                     _, check_w = first_edit(others[1])
                     checked.append(check_w)
                     log.info("initialize: views %d and %d disagree; view %d: %s", self.v_first, u, others[1], check_w)
-                    if check_w["coverage"] is not None and agrees(check_w):
+                    if agrees(check_w):
                         self.v_first, edited, check = u, edited_u, check_u
         coverage = check["coverage"]
         check["decides"] = True
@@ -454,7 +458,7 @@ class RegionalEdit(EditSystemBase):
         self.save_image("initialize/first_view_edited.png", edited)
         self.localize_metrics["edit_coverage"] = coverage
         self.localize_metrics["edit_coverage_views"] = checked
-        if not agrees(check):
+        if elsewhere(check):
             if check["changed_px"] >= self.min_judged_change(check["view"]):
                 self.add_time("initialize", time.perf_counter() - t0)
                 return False
@@ -554,9 +558,9 @@ class RegionalEdit(EditSystemBase):
         g = self.geometry
         # "editable" = mask | generation > 0, re-evaluated at every backward pass.
         g.set_trainable_mask(None if self.cfg.refine.optimize_all else "editable")
-        fixed = list(self.cfg.refine.source_fixed) + (list(SHAPE_FREE_PARAMS) if self.adds_only else [])
+        fixed = [*self.cfg.refine.source_fixed, *(SHAPE_FREE_PARAMS if self.adds_only else ())]
         if not self.cfg.refine.optimize_all and self.shape_may_change and fixed:
-            g.set_added_only(sorted(set(fixed), key=fixed.index))
+            g.set_added_only(fixed)
         if not self.cfg.refine.optimize_all and not self.shape_may_change:
             # A recolour: the region's Gaussians keep their shape and opacity, only their colours
             # train (left free, they grow and move into the unedited surroundings).
