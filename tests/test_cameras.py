@@ -376,3 +376,15 @@ def test_face_scene_cameras_and_points():
     assert min(inside_fracs) > 0.5 and np.mean(inside_fracs) > 0.7
     assert (seen >= 2).mean() > 0.99  # every SfM point is seen by at least two views
     assert np.mean(colour_err) < 0.75 * np.mean(random_err), (colour_err, random_err)
+
+
+def test_a_camera_moved_to_another_device_stays_there():
+    # The GPU path moves cameras with .to(device); a CUDA tensor cannot go through numpy (found by the
+    # first run on a GPU). The meta device fails the same way without a GPU.
+    cam = Camera(torch.eye(4, dtype=torch.float64), 100.0, 100.0, 32.0, 32.0, 64, 64, image_name="c0")
+    assert cam.world_to_camera.dtype == torch.float32
+    moved = cam.to("meta")
+    assert moved.device.type == "meta" and moved.world_to_camera.dtype == torch.float32
+    assert cam.device.type == "cpu"  # the scene's own camera is not moved
+    from_numpy = Camera(np.eye(4), 100.0, 100.0, 32.0, 32.0, 64, 64)
+    assert from_numpy.world_to_camera.dtype == torch.float32 and from_numpy.device.type == "cpu"

@@ -23,7 +23,9 @@ class Camera:
     distortion: Optional[Tuple[float, float, float, float]] = None
 
     def __post_init__(self) -> None:
-        w2c = torch.as_tensor(np.asarray(self.world_to_camera), dtype=torch.float32)
+        w2c = self.world_to_camera
+        # A tensor keeps its device (np.asarray would fail on a CUDA one); anything else is read as an array.
+        w2c = w2c.float() if isinstance(w2c, torch.Tensor) else torch.as_tensor(np.asarray(w2c), dtype=torch.float32)
         if w2c.shape != (4, 4):
             raise ValueError(f"camera '{self.image_name}': world_to_camera must be 4x4, got {tuple(w2c.shape)}")
         self.world_to_camera = w2c
