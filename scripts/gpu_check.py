@@ -19,7 +19,8 @@ and the others still run; its peak CUDA memory is its own):
                    alpha, depth (forward) and of every parameter's gradient and means2d's under a
                    weighted rgb loss (backward; bwd_max_rel: the largest, relative to that gradient's
                    largest value); failed above tests/test_renderer.py's tolerances (1e-3 forward,
-                   1e-2 relative backward). The first call includes gsplat's JIT build of its CUDA
+                   1e-2 relative backward), except that up to 1e-4 of the pixels may differ by up to
+                   1/255 forward: a Gaussian at the alpha cut-off, see CUTOFF_MAX. The first call includes gsplat's JIT build of its CUDA
                    kernels when no prebuilt one is installed (once; it needs nvcc).
   ip2p_fp16        InstructPix2Pix from the real-size folder in float16 at 512²: load time, one edit
   ip2p_bf16        of 1 DDIM step and one of 20 (each = VAE encode + steps + decode), the guided step
@@ -93,6 +94,12 @@ CPU_SMOKE_SETTINGS = dict(device="cpu", models="tiny", resolution=64, gaussians=
 # Tolerances of tests/test_renderer.py::test_gsplat_agrees_with_torch_rasterizer.
 FORWARD_TOL = 1e-3  # rgb and alpha, absolute; depth, relative on pixels with alpha > 0.5
 BACKWARD_TOL = 1e-2  # gradients, max abs difference relative to the largest gradient
+# A Gaussian whose alpha at a pixel sits at the 1/255 cut-off can fall on either side of it in the two
+# renderers (float rounding); that pixel then differs by up to its contribution, below 1/255. Seen on the
+# H200: one pixel of 262,144 at 1.26e-3 (50k Gaussians, 512²), the 99.9th percentile at 1.7e-6. So a few
+# pixels may pass FORWARD_TOL, none CUTOFF_MAX.
+CUTOFF_MAX = 1 / 255
+CUTOFF_FRACTION = 1e-4  # of the pixels, at most, beyond FORWARD_TOL
 
 
 class Skip(Exception):
@@ -233,12 +240,16 @@ def render_comparison(ctx: dict, n: Optional[int] = None, size: Optional[int] = 
         grads[name]["means2d"] = o["means2d"].grad.detach().clone()
     a, b = out["torch"], out["other"]
     solid = a["alpha"] > 0.5
+    # per pixel: rgb (largest channel) and alpha absolute, depth relative where the pixel is solid
+    diffs = {"rgb": (a["rgb"] - b["rgb"]).abs().amax(-1), "alpha": (a["alpha"] - b["alpha"]).abs().reshape(size, size),
+             "depth": torch.where(solid, (a["depth"] - b["depth"]).abs() / a["depth"].clamp_min(1e-12), 0.0).reshape(size, size)}
     res: Dict[str, Any] = {"gaussians": n, "size": size, "visible_torch": int(a["visible"].sum()),
                            f"visible_{label}_only": int((b["visible"] & ~a["visible"]).sum()),
-                           "fwd_rgb_max_abs": float((a["rgb"] - b["rgb"]).abs().max()),
-                           "fwd_alpha_max_abs": float((a["alpha"] - b["alpha"]).abs().max()),
-                           "fwd_depth_max_rel": float(((a["depth"] - b["depth"]).abs()[solid] / a["depth"][solid]).max())
-                           if solid.any() else 0.0}
+                           "fwd_rgb_max_abs": float(diffs["rgb"].max()), "fwd_alpha_max_abs": float(diffs["alpha"].max()),
+                           "fwd_depth_max_rel": float(diffs["depth"].max()),
+                           # how the difference is spread: a few pixels at a Gaussian's cut-off, or many
+                           "fwd_rgb_p999_abs": float(torch.quantile(diffs["rgb"].flatten().float(), 0.999)),
+                           "fwd_pixels_over_tol": int(torch.stack(list(diffs.values())).amax(0).gt(FORWARD_TOL).sum())}
     both = a["visible"] & b["visible"]
     worst, worst_name = 0.0, None
     for p, ga in grads["torch"].items():
@@ -254,10 +265,14 @@ def render_comparison(ctx: dict, n: Optional[int] = None, size: Optional[int] = 
     res.update({"bwd_max_rel": worst, "bwd_max_rel_of": worst_name})
     res.update({k: round(v, 4) for k, v in seconds.items()})
     problems = [] if float(grads["torch"]["means"].abs().max()) > 0 else ["no gradient reached the Gaussians' means"]
-    problems += [f"forward {k} {res[f'fwd_{k}_max_abs']:.2e} > {FORWARD_TOL:g}" for k in ("rgb", "alpha")
-                if res[f"fwd_{k}_max_abs"] > FORWARD_TOL]
-    if res["fwd_depth_max_rel"] > FORWARD_TOL:
-        problems.append(f"forward depth (relative) {res['fwd_depth_max_rel']:.2e} > {FORWARD_TOL:g}")
+    allowed = int(CUTOFF_FRACTION * size * size)
+    for k, d in diffs.items():
+        worst_px, over = float(d.max()), int(d.gt(FORWARD_TOL).sum())
+        what = f"forward {k}{' (relative)' if k == 'depth' else ''} {worst_px:.2e}"
+        if worst_px > CUTOFF_MAX:
+            problems.append(f"{what} > {CUTOFF_MAX:.2e} (more than a Gaussian at the 1/255 cut-off)")
+        elif over > allowed:
+            problems.append(f"{what} > {FORWARD_TOL:g} at {over} pixels (at most {allowed} may, at a Gaussian's cut-off)")
     if worst > BACKWARD_TOL:
         problems.append(f"the gradient of {worst_name} differs by {worst:.2e} of its largest value (> {BACKWARD_TOL:g})")
     if problems:
@@ -384,6 +399,10 @@ def donut_argv(ctx: dict) -> List[str]:
             "system.guidance.local_files_only=true", f"system.guidance.num_inference_steps={s['ddim_steps']}",
             "system.depth_type=depth-anything", f"system.depth.pretrained={priors['depth_anything']}",
             "system.depth.local_files_only=true", f"system.eval.turntable_frames={s['turntable_frames']}",
+            # Random weights edit nothing consistently, so the safe stops (views disagree, edit outside
+            # the region) would end the run after localization (seen on the first H200 run): off, so
+            # that every stage runs and is timed.
+            "system.localization.min_view_agreement=0", "system.localization.min_edit_coverage=0",
             "trainer.enable_progress_bar=false"]
     if ctx["device"].startswith("cuda"):
         argv[2:2] = ["--gpu", "0"]
@@ -410,8 +429,11 @@ def check_donut_edit(ctx: dict) -> dict:
     if rc != 0:
         raise CheckFailed(f"launch.py exited {rc}: {last_line(tee.text())}")
     trial = _newest_trial(os.path.join(ctx["work"], "runs"), "gpu-check-donut")
+    metrics = _metrics(trial)
+    if metrics.get("stopped"):
+        raise CheckFailed(f"the edit stopped early ({metrics['stopped']}): the stages after it were not timed")
     res = {"resolution": ctx["resolution"], "renderer": _renderer_auto(ctx["device"]), "wall_s": round(wall, 2),
-           **_stage_results(_metrics(trial)), "trial": trial}
+           **_stage_results(metrics), "trial": trial}
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         res["cuda_peak_gib"] = _gib(torch.cuda.max_memory_allocated())
     return res

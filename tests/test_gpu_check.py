@@ -230,8 +230,25 @@ def test_render_comparison_on_cpu(monkeypatch):
 
     monkeypatch.setattr(registry, "find", lambda name, *a, **kw: OffBy if name == "off-by" else real_find(name, *a, **kw))
     off = gpu_check.render_comparison(ctx, other="off-by")
-    assert off["_fail"].startswith("forward rgb 2.00e-03 > 0.001")
+    assert off["_fail"].startswith("forward rgb 2.00e-03 > 0.001 at 2304 pixels")
     assert off["bwd_max_rel"] == 0.0  # a constant offset leaves the gradients as they were
+
+    # One pixel off: a Gaussian at the alpha cut-off (as gsplat on the H200: 1.26e-3 at one pixel of 512²)
+    # passes; one pixel off by more than such a Gaussian can make fails.
+    def one_pixel(by):
+        class OnePixel(OffBy):
+            def render(self, *a, **kw):
+                out = self.inner.render(*a, **kw)
+                rgb = out["rgb"].clone()
+                rgb[10, 10, 0] += by
+                return {**out, "rgb": rgb}
+        return OnePixel
+
+    ctx = {"device": "cpu", "render_gaussians": 300, "resolution": 100}  # 1e-4 of 100² pixels: one may differ
+    for by, fails in ((1.26e-3, False), (5e-3, True)):
+        monkeypatch.setattr(registry, "find", lambda name, *a, **kw: one_pixel(by) if name == "off-by" else real_find(name, *a, **kw))
+        res = gpu_check.render_comparison(ctx, other="off-by")
+        assert res["fwd_pixels_over_tol"] == 1 and ("_fail" in res) == fails, (by, res.get("_fail"))
 
 
 # --------------------------------------------------------------------------- fp16 / bf16 on the CPU
