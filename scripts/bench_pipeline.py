@@ -55,6 +55,10 @@ BUDGETS = {
     "tiny": dict(resolution=64, cycles=3, t_schedule=[750, 500, 250], shape_t_schedule=[450, 350, 250], m=8, iterations=100, max_views=12,
                  in2n_steps=300, turntable_frames=12, densify_every=50),
 }
+# Random weights edit nothing consistently, so the safe stops (views disagree, edit outside the region)
+# would end a regional edit after localization (seen on the H200 with the real-size folders): off, so that
+# every stage runs and is timed. A run that stops anyway is an error, not a timing.
+RANDOM_WEIGHTS_NO_STOPS = ["system.localization.min_view_agreement=0", "system.localization.min_edit_coverage=0"]
 
 
 # ----------------------------------------------------------------------------------- child steps
@@ -427,6 +431,7 @@ def main(argv=None) -> dict:
         f"system.refine.shape_t_schedule=[{','.join(map(str, args.shape_t_schedule))}]",
         f"system.refine.m={args.m}", f"system.refine.iterations_per_cycle={args.iterations}",
         f"system.localization.max_views={args.max_views}", f"system.densify.every={args.densify_every}",
+        *RANDOM_WEIGHTS_NO_STOPS,
     ]
     report["schedule"] = {"cycles": args.cycles, "t_schedule": args.t_schedule,
                           "shape_t_schedule": args.shape_t_schedule, "m": args.m,
@@ -442,6 +447,8 @@ def main(argv=None) -> dict:
         res, log = step(name)
         child = run_child(["--child-launch", res, *launch_args(args, config, name, overrides)], res, log, env)
         m = trial_metrics(args, name)
+        if m.get("stopped"):
+            raise SystemExit(f"{name} stopped early ({m['stopped']}; {m['trial']}): the stages after it were not timed")
         report["runs"][name] = {
             "seconds": m["seconds"], "seconds_total": m["seconds_total"], "wall_seconds": child["wall_seconds"],
             # process start, imports, loading the priors, Lightning set-up: what the stages do not time

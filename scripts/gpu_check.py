@@ -391,6 +391,8 @@ def check_bench_pipeline(ctx: dict) -> dict:
 
 
 def donut_argv(ctx: dict) -> List[str]:
+    import bench_pipeline
+
     s, priors, side = ctx["schedule"], ctx["priors"], ctx["resolution"]
     argv = ["--config", os.path.join(ROOT, "configs", "donut_add.yaml"), "--train",
             f"exp_root_dir={os.path.join(ctx['work'], 'runs')}", "name=gpu-check-donut", f"tag={ctx['models']}",
@@ -399,11 +401,7 @@ def donut_argv(ctx: dict) -> List[str]:
             "system.guidance.local_files_only=true", f"system.guidance.num_inference_steps={s['ddim_steps']}",
             "system.depth_type=depth-anything", f"system.depth.pretrained={priors['depth_anything']}",
             "system.depth.local_files_only=true", f"system.eval.turntable_frames={s['turntable_frames']}",
-            # Random weights edit nothing consistently, so the safe stops (views disagree, edit outside
-            # the region) would end the run after localization (seen on the first H200 run): off, so
-            # that every stage runs and is timed.
-            "system.localization.min_view_agreement=0", "system.localization.min_edit_coverage=0",
-            "trainer.enable_progress_bar=false"]
+            *bench_pipeline.RANDOM_WEIGHTS_NO_STOPS, "trainer.enable_progress_bar=false"]
     if ctx["device"].startswith("cuda"):
         argv[2:2] = ["--gpu", "0"]
     if ctx.get("smoke"):  # the CPU smoke run: the donut config's 3 x 100 steps would take too long

@@ -320,3 +320,34 @@ def test_dtype_auto_resolution(tiny_models, monkeypatch):
     assert resolve_dtype("auto", torch.device("cuda", 0)) == torch.float16
     with pytest.raises(ValueError, match="unknown dtype 'float8'"):
         Pretrained("InstructPix2Pix", folder, device="cpu", dtype="float8")
+
+
+# --------------------------------------------------------------------------- the donut edit's timing
+def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped(tmp_path, monkeypatch):
+    """Random weights stop a real edit after localization (seen on the H200): the check turns the safe
+    stops off so that every stage is timed, and a run that stops anyway is a failure, not a timing."""
+    import bench_pipeline
+    import gs_regional.launch as launch
+
+    donut = tmp_path / "donut.ply"
+    donut.write_bytes(b"ply")  # only its presence is checked before the (faked) launch
+    ctx = {"device": "cpu", "models": "tiny", "resolution": 64, "work": str(tmp_path), "donut": str(donut),
+           "priors": {"ip2p": "ip2p", "depth_anything": "da"}, "schedule": dict(gpu_check.CPU_SMOKE_SETTINGS["schedule"])}
+    argv = gpu_check.donut_argv(ctx)
+    assert set(bench_pipeline.RANDOM_WEIGHTS_NO_STOPS) <= set(argv)
+
+    def fake_launch(stopped):
+        def main(argv, custom_dir=None):
+            save = tmp_path / "runs" / "gpu-check-donut" / f"tiny@{stopped or 'ran'}" / "save"
+            save.mkdir(parents=True)
+            (save / "metrics.json").write_text(json.dumps({"stopped": stopped, "seconds": {"localize": 1.0, "refine_edit": 2.0},
+                                                           "unet_evals": 10}))
+            return 0
+        return main
+
+    monkeypatch.setattr(launch, "main", fake_launch("views disagree"))
+    with pytest.raises(gpu_check.CheckFailed, match="stopped early \\(views disagree\\)"):
+        gpu_check.check_donut_edit(ctx)
+    monkeypatch.setattr(launch, "main", fake_launch(None))
+    res = gpu_check.check_donut_edit(ctx)
+    assert res["refine_edit_s"] == 2.0 and res["unet_evals"] == 10
