@@ -556,6 +556,37 @@ def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     assert m["source_deleted"] == 0  # an edit that removes nothing keeps every source Gaussian
 
 
+def test_the_first_edited_view_is_not_one_whose_relevance_map_is_noise(tmp_path, monkeypatch, reference):
+    """In a view that hides the region the relevance map, normalised to its peak, is noise, and its
+    blobs (in the empty background) can be larger than every real mask: the view with the largest
+    2D mask was edited first although it shows none of the region (truth-suite draw 769177 c24, a
+    patch on the donut: 3 pixels of it in the first view, +1.5 dB instead of +9.3). Known answer:
+    one view other than the one the run without blobs edits first gets, as its relevance map, a
+    blob in its corner larger than any real mask; the first edited view stays the same."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    first_without = metrics(reference["trial"])["v_first"]
+    relevance = SimulatedEditor._relevance
+    blobbed = []
+
+    def noise_in_one_view(self, images, prompt, timestep, samples, seeds, cameras):
+        maps = relevance(self, images, prompt, timestep, samples, seeds, cameras)
+        for k, cam in enumerate(self._cameras(images, cameras, "relevance")):
+            if not blobbed and not cam.image_name.startswith(f"view_{first_without:03d}_"):
+                blobbed.append(cam.image_name)
+            if cam.image_name in blobbed:
+                maps[k] = 0.0
+                maps[k, :14, :14] = 1.0  # 196 px: larger than the moustache's mask in any view at 32²
+        return maps
+
+    monkeypatch.setattr(SimulatedEditor, "_relevance", noise_in_one_view)
+    assert launch(tmp_path, "blobs") == 0
+    m = metrics(trial(tmp_path, "blobs"))
+    assert blobbed and "stopped" not in m
+    first = m["edit_coverage_views"][0]
+    assert m["v_first"] == first_without and first["region_px"] > 0, (m["v_first"], blobbed, first)
+
+
 def test_a_big_object_sticking_out_of_its_part_is_not_taken_for_an_edit_elsewhere(tmp_path, monkeypatch):
     """A big object added on a small part (a big ball on the head) sticks out over what lies
     behind: half or more of its change lies beside the selection in every view, and the coverage
