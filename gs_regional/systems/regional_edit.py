@@ -41,9 +41,6 @@ MIN_JUDGED_CHANGE = 0.002
 # the selection) but covers the part; an edit placed on something else changes next to none of
 # the selection (0-0.03 in the stability sweep's stops, 0.09-0.27 on the big balls put on a head).
 MIN_FILLED = 0.1
-# The first edited view's 2D mask must lie at least this much on the selection (rendered back):
-# a view whose relevance map is noise (it hides the region) is not edited first.
-MASK_ON_SELECTION = 0.5
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over the localization views: a Gaussian they see
 
 
@@ -362,19 +359,16 @@ class RegionalEdit(EditSystemBase):
         cfg, scene, g = self.cfg, self.scene, self.geometry
         views = self.localize_views
         # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
-        # editor is most confident about the region, usually a frontal one; among the views whose
-        # mask lies mostly (MASK_ON_SELECTION) on the selection, when there are any: in a view that
-        # hides the region the relevance map, normalised to its peak, is noise, and its blobs (in
-        # the empty background) can outgrow every real mask (a patch on the donut seen from below:
-        # the first edit showed 3 pixels of it and the edit gained 1.5 dB instead of 9.3).
+        # editor is most confident about the region, usually a frontal one.
         # The localized masks of the views (kept by run_localize; rendered again after a resume).
         regions = [self.localized_masks.pop(i, None) for i in views]
         regions = [self.rendered_mask(i) if r is None else r for i, r in zip(views, regions)]
         localized = dict(zip(views, regions))
-        masks2d = regions if self.masks2d is None else [m.bool().to(self.device) for m in self.masks2d]
-        areas = torch.stack([m.sum() for m in masks2d]).float()
-        overlap = torch.stack([(r & m).sum() for r, m in zip(regions, masks2d)]).float()
-        regions = [r | m for r, m in zip(regions, masks2d)]
+        if self.masks2d is not None:
+            regions = [r | m.bool().to(self.device) for r, m in zip(regions, self.masks2d)]
+            areas = self.masks2d.flatten(1).sum(1).float()
+        else:
+            areas = torch.stack([r.sum() for r in regions]).float()
         if cfg.initialize and not bool(g.mask.all()):
             # Among the views that leave enough pixels outside the region to calibrate the
             # monocular depth on (a region that fills the view leaves none), when there are any.
@@ -384,9 +378,7 @@ class RegionalEdit(EditSystemBase):
             ], device=areas.device)
             if bool(calibratable.any()):
                 areas = torch.where(calibratable, areas, torch.full_like(areas, -1.0))
-        on_selection = (overlap >= MASK_ON_SELECTION * areas) & (areas >= 0)
-        first = torch.where(on_selection, areas, torch.full_like(areas, -1.0)) if bool(on_selection.any()) else areas
-        self.v_first = views[int(torch.argmax(first))]
+        self.v_first = views[int(torch.argmax(areas))]
 
         full_edits: Dict[int, torch.Tensor] = {}  # view -> the editor's full edit of it (one seed: edited once)
 
@@ -421,11 +413,23 @@ class RegionalEdit(EditSystemBase):
         # Does the editor edit what localization selected? (No ground truth needed.)
         edited, check = first_edit(self.v_first)
         checked = [check]
+        masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
+                   for k, u in enumerate(views)]
+        overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
+        best = views[int(torch.argmax(torch.where(areas >= 0, overlap, torch.full_like(overlap, -1.0))))]
+        if check["changed_px"] < self.min_judged_change(self.v_first) and best != self.v_first:
+            # The first edit shows next to nothing (it can neither confirm nor stop the run): in a
+            # view that hides the region the relevance map, normalised to its peak, is noise whose
+            # blobs can make the largest 2D mask (a patch on the donut seen from below: 3 pixels of
+            # it, and the edit gained 1.5 dB instead of 9.3). The view where the editor's 2D mask
+            # and the selection overlap most is edited, checked and initialized from instead.
+            self.v_first, (edited, check) = best, first_edit(best)
+            checked.append(check)
         if elsewhere(check):
             # One edit of one view is thin evidence for throwing the run away. The view where the
-            # editor's 2D masks and the selection overlap next most is edited too, and decides when
-            # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the region
-            # can be hidden behind what the editor changes there; initialization moves there) or only
+            # editor's 2D masks and the selection overlap most is edited too, and decides when
+            # the first edit showed almost nothing (under SHOWS_NOTHING of its change: the 2D mask
+            # can be largest in a view that hides the region; initialization moves there) or only
             # just missed (coverage at least half the minimum: a placement jittered off the
             # region's edge; initialization stays with the first view).
             # The other views that can be calibrated (areas < 0: not), by overlap.
@@ -676,7 +680,7 @@ class RegionalEdit(EditSystemBase):
                 other = next((c for c in checked if c is not decided), None)
                 note = "" if other is None else (
                     f" (view {other['view']}, edited first, showed almost nothing of the edit)" if other is checked[0] else
-                    f" (view {other['view']}, where the editor's 2D masks and the selection overlap next most, puts "
+                    f" (view {other['view']}, where the editor's 2D masks and the selection overlap most, puts "
                     f"{other['coverage'] or 0:.2f} in it: the editor edits different things in different views)")
                 return self.stop_unchanged(
                     "edit outside the region", f"initialize: the first edited view ({decided['view']}) changes the "
