@@ -413,18 +413,6 @@ class RegionalEdit(EditSystemBase):
         # Does the editor edit what localization selected? (No ground truth needed.)
         edited, check = first_edit(self.v_first)
         checked = [check]
-        masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
-                   for k, u in enumerate(views)]
-        overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
-        best = views[int(torch.argmax(torch.where(areas >= 0, overlap, torch.full_like(overlap, -1.0))))]
-        if check["changed_px"] < self.min_judged_change(self.v_first) and best != self.v_first:
-            # The first edit shows next to nothing (it can neither confirm nor stop the run): in a
-            # view that hides the region the relevance map, normalised to its peak, is noise whose
-            # blobs can make the largest 2D mask (a patch on the donut seen from below: 3 pixels of
-            # it, and the edit gained 1.5 dB instead of 9.3). The view where the editor's 2D mask
-            # and the selection overlap most is edited, checked and initialized from instead.
-            self.v_first, (edited, check) = best, first_edit(best)
-            checked.append(check)
         if elsewhere(check):
             # One edit of one view is thin evidence for throwing the run away. The view where the
             # editor's 2D masks and the selection overlap most is edited too, and decides when
@@ -432,6 +420,9 @@ class RegionalEdit(EditSystemBase):
             # can be largest in a view that hides the region; initialization moves there) or only
             # just missed (coverage at least half the minimum: a placement jittered off the
             # region's edge; initialization stays with the first view).
+            masks2d = [localized[u] if self.masks2d is None else self.masks2d[k].bool().to(self.device)
+                       for k, u in enumerate(views)]
+            overlap = torch.stack([(localized[u] & m).sum() for u, m in zip(views, masks2d)]).float().to(areas.device)
             # The other views that can be calibrated (areas < 0: not), by overlap.
             others = [views[i] for i in torch.argsort(overlap, descending=True, stable=True).tolist()
                       if views[i] != self.v_first and areas[i] >= 0]
