@@ -556,6 +556,49 @@ def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
     assert m["source_deleted"] == 0  # an edit that removes nothing keeps every source Gaussian
 
 
+def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_shows_the_region(tmp_path, monkeypatch, reference):
+    """In a view that hides the region the relevance map, normalised to its peak, is noise, and its
+    blobs (in the empty background) can be larger than every real mask: that view was edited first,
+    its full edit showed next to nothing (3 pixels of a patch on the donut, in the selection, so no
+    check fired) and the whole edit started from it (truth-suite draw 769177 c24: +1.5 dB instead of
+    +9.3). Known answer: one view other than the one the run without blobs edits first gets a
+    relevance map that is a blob larger than any real mask, and its full edit changes one pixel
+    of the region; the run moves to the view where the 2D masks and the selection overlap most."""
+    from gs_regional.sim.editor import SimulatedEditor
+
+    first_without = metrics(reference["trial"])["v_first"]
+    relevance, edit = SimulatedEditor._relevance, SimulatedEditor._edit
+    blobbed = []
+
+    def noise_in_one_view(self, images, prompt, timestep, samples, seeds, cameras):
+        maps = relevance(self, images, prompt, timestep, samples, seeds, cameras)
+        for k, cam in enumerate(self._cameras(images, cameras, "relevance")):
+            if not blobbed and not cam.image_name.startswith(f"view_{first_without:03d}_"):
+                blobbed.append(cam.image_name)
+            if cam.image_name in blobbed:
+                maps[k] = 0.0
+                maps[k, :14, :14] = 1.0  # 196 px: larger than the moustache's mask in any view at 32²
+        return maps
+
+    def shows_nothing_there(self, images, cond_images, prompt, t_start, seeds, cameras):
+        cam = self._cameras(images, cameras, "edit")[0]
+        if t_start is None and cam.image_name in blobbed:
+            out = images.clone()
+            rows, cols = (self.truth_renderer.region_maps(cam)[..., 0] > 0.5).nonzero(as_tuple=True)
+            out[0, rows[0], cols[0]] = 1.0 - out[0, rows[0], cols[0]]  # one pixel, in the region
+            return out
+        return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
+
+    monkeypatch.setattr(SimulatedEditor, "_relevance", noise_in_one_view)
+    monkeypatch.setattr(SimulatedEditor, "_edit", shows_nothing_there)
+    assert launch(tmp_path, "blobs") == 0
+    m = metrics(trial(tmp_path, "blobs"))
+    assert blobbed and "stopped" not in m
+    first, second = m["edit_coverage_views"][:2]
+    assert blobbed[0].startswith(f"view_{first['view']:03d}_") and first["changed_px"] < 2  # edited first: nothing
+    assert m["v_first"] == second["view"] != first["view"] and second["region_px"] > 0, m["edit_coverage_views"]
+
+
 def test_a_big_object_sticking_out_of_its_part_is_not_taken_for_an_edit_elsewhere(tmp_path, monkeypatch):
     """A big object added on a small part (a big ball on the head) sticks out over what lies
     behind: half or more of its change lies beside the selection in every view, and the coverage
