@@ -20,8 +20,9 @@ and the others still run; its peak CUDA memory is its own):
                    weighted rgb loss (backward; bwd_max_rel: the largest, relative to that gradient's
                    largest value); failed above tests/test_renderer.py's tolerances (1e-3 forward,
                    1e-2 relative backward), except that up to 1e-4 of the pixels may differ by up to
-                   1/255 forward: a Gaussian at the alpha cut-off, see CUTOFF_MAX. The first call includes gsplat's JIT build of its CUDA
-                   kernels when no prebuilt one is installed (once; it needs nvcc).
+                   1/255 forward: a Gaussian at the alpha cut-off, see CUTOFF_MAX. The first call
+                   includes gsplat's JIT build of its CUDA kernels when no prebuilt one is installed
+                   (once; it needs nvcc).
   ip2p_fp16        InstructPix2Pix from the real-size folder in float16 at 512²: load time, one edit
   ip2p_bf16        of 1 DDIM step and one of 20 (each = VAE encode + steps + decode), the guided step
                    (3-branch UNet + scheduler step) = (t20 - t1) / 19, one relevance map, weights and
