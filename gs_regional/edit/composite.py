@@ -84,15 +84,19 @@ def recoloured_fraction(
 
 def components(mask: torch.Tensor) -> torch.Tensor:
     """(H, W) int64 labels of the 8-connected components of `mask` (-1 outside it): each pixel
-    takes the largest index in its component, spread one pixel per pass."""
+    ends with the largest pixel index of its component. Each pass takes the largest label among
+    the 8 neighbours, then jumps to the label of the pixel its label names (that pixel lies in
+    the same component and its label is at least as large), so a long thin blob takes about
+    log2 of its length in passes instead of its length."""
     h, w = mask.shape
-    idx = torch.arange(h * w, device=mask.device, dtype=torch.float64).reshape(1, 1, h, w)
-    none = torch.full_like(idx, -1.0)
-    labels = torch.where(mask[None, None], idx, none)
+    inside = mask.reshape(-1)
+    labels = torch.where(inside, torch.arange(h * w, device=mask.device), torch.full_like(inside, -1, dtype=torch.long))
     while True:
-        grown = torch.where(mask[None, None], torch.nn.functional.max_pool2d(labels, 3, 1, 1), none)
+        pooled = torch.nn.functional.max_pool2d(labels.reshape(1, 1, h, w).double(), 3, 1, 1).reshape(-1).long()
+        grown = torch.where(inside, torch.maximum(labels, pooled), labels)
+        grown = torch.where(inside, grown[grown.clamp_min(0)], grown)
         if bool((grown == labels).all()):
-            return labels[0, 0].long()
+            return labels.reshape(h, w)
         labels = grown
 
 
@@ -112,9 +116,9 @@ def edit_change(
     over `behind` or near the region for at least BLOB_BEHIND of its pixels: an object added on a
     part grows out of it over what lies behind (a big ball put on a head, seen from the side,
     covers none of the head), while an edit of another part changes that part, beside the region
-    rather than behind it. Empty background (not `opaque`, not near the
-    region) is left out: no Gaussian renders there, and its noise, clipped at black, would set the
-    threshold below the blur of regenerating the object. None when fewer than 16 calm pixels are left."""
+    rather than behind it. Empty background (not `opaque`, not near the region) is left out: no
+    Gaussian renders there, and its noise, clipped at black, would set the threshold below the
+    blur of regenerating the object. None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
     seen = torch.ones_like(near) if opaque is None else near | opaque.to(near.device)
     calm = seen & ~near
