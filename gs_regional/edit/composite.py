@@ -131,16 +131,15 @@ def edit_change(
     changed, _, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
     if behind is not None:
-        blob = components(changed >= 0.5)
-        inside = blob >= 0
-        ids, size = blob[inside].unique(return_counts=True)
-        lookup = torch.full((int(ids.max()) + 1 if len(ids) else 1,), -1, dtype=torch.long, device=near.device)
-        lookup[ids] = torch.arange(len(ids), device=near.device)
-        k = lookup[blob[inside]]  # each changed pixel's blob, 0..len(ids)-1
-        touches = torch.zeros(len(ids), device=near.device).index_add_(0, k, near[inside].float()) > 0
-        over = torch.zeros(len(ids), device=near.device).index_add_(0, k, (near | behind.to(near.device))[inside].float())
+        # Per blob of change (labelled by one of its pixel indices): its size, whether it touches
+        # the region's margin, and how much of it lies near the region or behind it.
+        moved = changed >= 0.5
+        blob = components(moved)[moved]
+        size = torch.bincount(blob, minlength=near.numel())
+        touches = torch.bincount(blob, near[moved].float(), minlength=near.numel()) > 0
+        over = torch.bincount(blob, (near | behind.to(near.device))[moved].float(), minlength=near.numel())
         grown = torch.zeros_like(near)
-        grown[inside] = (touches & (over >= BLOB_BEHIND * size))[k]
+        grown[moved] = (touches & (over >= BLOB_BEHIND * size))[blob]
         near = near | grown
     filled = float((changed[region] >= 0.5).float().mean()) if bool(region.any()) else 0.0
     return float(changed[near].sum()), float(changed.sum()), filled
