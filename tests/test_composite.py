@@ -228,13 +228,15 @@ def test_components_agrees_with_a_flood_fill_on_random_masks():
     assert len(components(snake)[snake].unique()) == 1
 
 
-@pytest.mark.parametrize("over", ["behind", "beside"])
+@pytest.mark.parametrize("over", ["behind", "beside", "corner"])
 def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it(over):
     """A big ball put on a small part (the top of a head) seen from the side covers none of the
     part: all of its change lies beside the selection, over the wall far behind, and the safe stop
     took it for an edit elsewhere (truth-suite draw 77272 c12). Known answer: a disc of change
-    touching the region from above counts as in the region when the source there lies behind the
-    region, and not when it is another part beside it at the region's depth (an edit of that part)."""
+    resting on the region from above counts as in the region when the source there lies behind the
+    region; not when it is another part beside it at the region's depth (an edit of that part),
+    and not when it lies behind but touches the region's margin at a corner only (an object
+    placed off the part: the stability sweep's 16 px position jitter, which should stop)."""
     from gs_regional.edit.composite import edit_change
 
     gen = torch.Generator().manual_seed(0)
@@ -244,9 +246,12 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     region = torch.zeros(h, w, dtype=torch.bool)
     region[26:30, 18:30] = True  # the top of a head
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    ball = ((yy - 19) ** 2 + (xx - 24) ** 2) <= 25  # a disc resting on it (rows 14-24)
+    if over == "corner":  # off to the side: 3 of its pixels in the margin's corner
+        ball = ((yy - 21) ** 2 + (xx - 34) ** 2) <= 25
+    else:  # resting on the head, its lower rim hidden by it (rows 17-25)
+        ball = (((yy - 22) ** 2 + (xx - 24) ** 2) <= 25) & (yy < 26)
     behind = torch.zeros_like(region)
-    if over == "behind":
+    if over != "beside":
         behind[:24] = True  # the wall far behind the head
     edited = source + 0.005 * torch.randn(source.shape, generator=gen)
     edited[ball] = torch.tensor([0.9, 0.1, 0.1])

@@ -17,6 +17,11 @@ MIN_TONE_PIXELS = 64  # fewer calm pixels of the object than this: no tone fit
 # share of it lies over what is behind the region (or near it). Measured: a big ball on a head
 # seen from the side 1.0; a moustache drawn on the head when the body was selected, 0.53.
 BLOB_BEHIND = 0.75
+# ... and when it rests on the region along a good part of its width: its pixels in the margin at
+# least this share of margin x sqrt(its size) (a width-scale contact, the same at any resolution).
+# Measured: big balls on heads 0.84 and 1.33; a moustache drawn 16 px off the head, over the wall,
+# touching the margin at a corner, 0.18 (the stability sweep's position jitter: a stop).
+BLOB_CONTACT = 0.5
 
 
 def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, noise_sigmas: float,
@@ -112,11 +117,11 @@ def edit_change(
     """(pixels of the editor's change near `region`, pixels of it in all, the fraction of
     `region`'s pixels it changes): the change is `real_change`, beyond `noise_sigmas` x the
     editor's noise measured on the opaque pixels beyond `margin_px` of `region`. Near: within
-    `margin_px` of `region`, or in a connected blob of change that touches that margin and lies
-    over `behind` or near the region for at least BLOB_BEHIND of its pixels: an object added on a
-    part grows out of it over what lies behind (a big ball put on a head, seen from the side,
-    covers none of the head), while an edit of another part changes that part, beside the region
-    rather than behind it. Empty background (not `opaque`, not near the region) is left out: no
+    `margin_px` of `region`, or in a connected blob of change that rests on that margin (BLOB_CONTACT)
+    and lies over `behind` or near the region for at least BLOB_BEHIND of its pixels: an object
+    added on a part grows out of it over what lies behind (a big ball put on a head, seen from the
+    side, covers none of the head), while an edit of another part changes that part, beside the
+    region rather than behind it, and an object placed off the part touches it at a corner at most. Empty background (not `opaque`, not near the region) is left out: no
     Gaussian renders there, and its noise, clipped at black, would set the threshold below the
     blur of regenerating the object. None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
@@ -131,15 +136,16 @@ def edit_change(
     changed, _, _ = real_change(edited, source, calm, noise_sigmas, explain_blur=True, blur_in_noise=False)
     changed = changed * seen
     if behind is not None:
-        # Per blob of change (labelled by one of its pixel indices): its size, whether it touches
-        # the region's margin, and how much of it lies near the region or behind it.
+        # Per blob of change (labelled by one of its pixel indices): its size, how many of its
+        # pixels lie in the region's margin, and how many near the region or behind it.
         moved = changed >= 0.5
         blob = components(moved)[moved]
-        size = torch.bincount(blob, minlength=near.numel())
-        touches = torch.bincount(blob, near[moved].float(), minlength=near.numel()) > 0
+        size = torch.bincount(blob, minlength=near.numel()).float()
+        contact = torch.bincount(blob, near[moved].float(), minlength=near.numel())
         over = torch.bincount(blob, (near | behind.to(near.device))[moved].float(), minlength=near.numel())
+        rests = (contact > 0) & (contact >= BLOB_CONTACT * max(margin_px, 1) * size.sqrt())
         grown = torch.zeros_like(near)
-        grown[moved] = (touches & (over >= BLOB_BEHIND * size))[blob]
+        grown[moved] = (rests & (over >= BLOB_BEHIND * size))[blob]
         near = near | grown
     filled = float((changed[region] >= 0.5).float().mean()) if bool(region.any()) else 0.0
     return float(changed[near].sum()), float(changed.sum()), filled
