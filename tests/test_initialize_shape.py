@@ -163,20 +163,16 @@ def test_an_addition_is_found_in_a_second_view_when_the_first_edit_misses_it(tmp
     """One full edit can miss a thin new object: the editor draws it a few pixels off (more than
     a moustache at 64² is thick) or not at all, and the depth of that image shows no change of
     shape. The edit is not taken for a recolour on that one view: the next view's edit shows the
-    moustache in depth and the Gaussians come from there. Here the first full edit brightens the
-    region and draws no moustache (the editor's miss, made certain rather than left to a draw of
-    its jitter): it changes the selection, so the first view is kept (a full edit that shows
-    nothing is handed over before initialization), and only its depth can tell the miss."""
+    moustache in depth and the Gaussians come from there. Here the first full edit returns its
+    input unchanged (the editor's miss, made certain rather than left to a draw of its jitter)."""
     from gs_regional.sim.editor import SimulatedEditor
 
     edit, missed = SimulatedEditor._edit, []
 
     def first_full_edit_misses(self, images, cond_images, prompt, t_start, seeds, cameras):
         if t_start is None and not missed:
-            cam = self._cameras(images, cameras, "edit")[0]
-            missed.append(cam.image_name)
-            region = self.truth_renderer.region_maps(cam)[..., 0] > 0.5
-            return torch.where(region[None, ..., None], (images + 0.3).clamp(0, 1), images)
+            missed.append(cameras[0].image_name)
+            return images.clone()
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
     monkeypatch.setattr(SimulatedEditor, "_edit", first_full_edit_misses)

@@ -117,11 +117,12 @@ def edit_change(
     """(pixels of the editor's change near `region`, pixels of it in all, the fraction of
     `region`'s pixels it changes): the change is `real_change`, beyond `noise_sigmas` x the
     editor's noise measured on the opaque pixels beyond `margin_px` of `region`. Near: within
-    `margin_px` of `region`, or in a connected blob of change that rests on that margin (BLOB_CONTACT)
-    and lies over `behind` or near the region for at least BLOB_BEHIND of its pixels: an object
-    added on a part grows out of it over what lies behind (a big ball put on a head, seen from the
-    side, covers none of the head), while an edit of another part changes that part, beside the
-    region rather than behind it, and an object placed off the part touches it at a corner at most. Empty background (not `opaque`, not near the region) is left out: no
+    `margin_px` of `region`, or in a connected blob of change that rests on that margin
+    (BLOB_CONTACT) and lies over `behind` or near the region for at least BLOB_BEHIND of its
+    pixels: an object added on a part grows out of it over what lies behind (a big ball put on a
+    head, seen from the side, covers none of the head), while an edit of another part changes that
+    part, beside the region rather than behind it, and an object placed off the part touches it
+    at a corner at most. Empty background (not `opaque`, not near the region) is left out: no
     Gaussian renders there, and its noise, clipped at black, would set the threshold below the
     blur of regenerating the object. None when fewer than 16 calm pixels are left."""
     near = dilate(region, margin_px) if margin_px > 0 else region
@@ -143,7 +144,7 @@ def edit_change(
         size = torch.bincount(blob, minlength=near.numel()).float()
         contact = torch.bincount(blob, near[moved].float(), minlength=near.numel())
         over = torch.bincount(blob, (near | behind.to(near.device))[moved].float(), minlength=near.numel())
-        rests = (contact > 0) & (contact >= BLOB_CONTACT * max(margin_px, 1) * size.sqrt())
+        rests = contact >= BLOB_CONTACT * max(margin_px, 1) * size.sqrt()  # > 0 for every blob
         grown = torch.zeros_like(near)
         grown[moved] = (rests & (over >= BLOB_BEHIND * size))[blob]
         near = near | grown
