@@ -152,6 +152,28 @@ def edit_change(
     return float(changed[near].sum()), float(changed.sum()), filled
 
 
+SPILL_SIGMA = 2.0  # px: the neighbourhood whose edited colour a pixel is compared with
+
+
+def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_SIGMA) -> torch.Tensor:
+    """(H, W): how much of the edit's nearby colour each pixel of `edited` (a target: the source
+    wherever the edit is not) takes, 0 (its source colour) to about 1 (the edit itself).
+
+    The edit's nearby colour is the local mean of `edited`, each pixel weighted by its squared
+    change: inside an edited area that is the pixel's own edited colour, whatever the texture
+    (blend 1), while a pixel beside the area onto which the editor's colour spilled (bleed) is a
+    partial mix of its source colour with it: the projection of its change onto the way from its
+    source colour to that colour is a fraction well under 1 (the simulator's bleed: at most 0.5)."""
+    d = edited - source
+    w = d.pow(2).sum(-1)
+    den = gaussian_blur(w[None], sigma)[0]
+    near = torch.stack([gaussian_blur((edited[..., c] * w)[None], sigma)[0] for c in range(3)], -1)
+    near = near / den[..., None].clamp_min(1e-12)
+    way = near - source
+    blend = (d * way).sum(-1) / way.pow(2).sum(-1).clamp_min(1e-12)
+    return torch.where(den > 1e-12, blend, torch.zeros_like(blend))
+
+
 def composite_target(
     edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
     source: torch.Tensor,  # (H, W, 3) render of the unedited scene

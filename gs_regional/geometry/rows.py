@@ -16,7 +16,7 @@ Pass the optimizer (or several, or Lightning's wrapper) to have its per-row stat
 """
 from __future__ import annotations
 
-from typing import Dict, List, Mapping, Optional, Union
+from typing import Dict, List, Mapping, Optional, Sequence, Union
 
 import torch
 import torch.nn as nn
@@ -185,6 +185,23 @@ def reset_opacity(model: GaussianModel, value: float = 0.01, optimizer: Optimize
     target = torch.log(clamped / (1 - clamped))  # inverse sigmoid
     _edit_optimizer_rows(optimizer, p, lambda v: v.masked_fill(rows.view(-1, *[1] * (v.dim() - 1)), 0))
     p.data = torch.where(rows, target, p.data)
+
+
+@torch.no_grad()
+def restore(model: GaussianModel, source: GaussianModel, rows: torch.Tensor, names: Sequence[str],
+            optimizer: Optimizers = None) -> int:
+    """Set the parameters `names` of `rows` (N,) bool back to those of the `source` rows they
+    are or descend from (`source_index`; rows the edit added are left alone) and zero their
+    optimizer state, so that Adam's moments do not move them on. Returns how many were restored."""
+    rows = rows & (model.source_index >= 0)
+    if not bool(rows.any()):
+        return 0
+    index = model.source_index[rows]
+    for name in names:
+        p = getattr(model, name)
+        _edit_optimizer_rows(optimizer, p, lambda v: v.masked_fill(rows.view(-1, *[1] * (v.dim() - 1)), 0))
+        p.data[rows] = getattr(source, name).detach().to(p.device)[index]
+    return int(rows.sum())
 
 
 def source_rows(model: GaussianModel, selected: torch.Tensor, n_source: int) -> torch.Tensor:

@@ -9,7 +9,7 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import composite_target, edit_change, recoloured_fraction
+from gs_regional.edit.composite import composite_target, edit_blend, edit_change, recoloured_fraction
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
@@ -132,6 +132,14 @@ class RefineConfig:
     # A pixel the region covers by at least this fraction keeps the edit fully, below it in
     # proportion (gs_regional.edit.composite.composite_target).
     composite_full_coverage: float = 0.5
+    # A recolour's selected Gaussian takes the edit only while the edited views recolour it: its
+    # rendering-weighted mean `edit_blend` over every view edited so far (how much of the nearby
+    # edit's colour its pixels take; 1 inside the edit, at most about half on the editor's bleed
+    # past the edit's edge, 0 where the edit leaves it alone) must reach this, or it keeps its
+    # source colours. The selection reaches a pixel or two past the part (blobby 2D masks), and
+    # that rim learned the bleed, which costs the unedited surroundings ~15 dB (docs/method.md).
+    # 0 lets every selected Gaussian train.
+    min_edit_blend: float = 0.5
     # A recolour (depth initialization trusted, no change of shape) trains only colours, at this
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
     # colours far in a few hundred. Not used when the shape may change (docs/method.md).
@@ -200,6 +208,7 @@ class RegionalEdit(EditSystemBase):
         self.first_edit: Optional[torch.Tensor] = None
         self.refine_start_count = 0
         self.localized_masks: Dict[int, torch.Tensor] = {}  # view -> (H, W) bool, localize -> initialize
+        self.blend_votes: Optional[torch.Tensor] = None  # (2, N) gate_recolour's sums over the edited views
 
     def check_settings(self) -> None:
         """Settings that cannot work fail at start-up, naming the key and the allowed range."""
@@ -646,7 +655,31 @@ class RegionalEdit(EditSystemBase):
         self.edited_views = sorted(set(self.edited_views) | set(views))
         shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
+        self.gate_recolour()
         self.add_time("refine_edit", time.perf_counter() - t0)
+
+    @torch.no_grad()
+    def gate_recolour(self) -> None:
+        """A recolour: the selected Gaussians that the edited views so far do not recolour
+        (`refine.min_edit_blend`) go back to their source colours and stop training; one whose
+        views later recolour it trains again. One gather per edited view (the cost of a render)."""
+        r, g = self.cfg.refine, self.geometry
+        if r.min_edit_blend <= 0 or self.shape_may_change or r.optimize_all or not self.cfg.localize:
+            return
+        if self.blend_votes is None or self.blend_votes.shape[1] != g.num_gaussians:
+            self.blend_votes = torch.zeros(2, g.num_gaussians, device=self.device)
+        for k, j in enumerate(self.cycle_views):
+            blend = edit_blend(self.cycle_targets[k], self.source_renders[j]).clamp(0, 1)
+            weights = self.renderer.pixel_weights(g, self.scene.cameras[j].to(self.device))
+            self.blend_votes[0] += weights.gather(blend)
+            self.blend_votes[1] += weights.gather(torch.ones_like(blend))
+        num, den = self.blend_votes
+        src = g.source_index
+        selected = (src >= 0) & self.source_selection.to(self.device)[src.clamp_min(0)]
+        takes = selected & ((den < SEEN_MIN_WEIGHT) | (num >= r.min_edit_blend * den))
+        rows.restore(g, self.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, self.optimizers())
+        g.mask.copy_(takes)
+        self.counts["recolour_declined"] = int((selected & ~takes).sum())
 
     def view_seed(self, cycle: int, index: int) -> int:
         """The editor's seed for view `index` in refinement cycle `cycle`."""
@@ -829,6 +862,7 @@ class RegionalEdit(EditSystemBase):
             "localize_views": list(getattr(self, "localize_views", [])),
             "localize_metrics": dict(getattr(self, "localize_metrics", {})),
             "init_report": getattr(self, "init_report", None),
+            "blend_votes": None if self.blend_votes is None else self.blend_votes.cpu(),
             # The 2D masks choose the first view: needed by a resume between localize and initialize.
             "masks2d": self.masks2d.cpu() if self.phase == "initialize" and self.masks2d is not None else None,
         }
@@ -850,6 +884,7 @@ class RegionalEdit(EditSystemBase):
         self.localize_metrics = state["localize_metrics"]
         self.init_report = state["init_report"]
         self.masks2d = state.get("masks2d")
+        self.blend_votes = state.get("blend_votes")
 
     def on_train_start(self) -> None:
         if self.masks2d is not None:
@@ -858,6 +893,8 @@ class RegionalEdit(EditSystemBase):
             self.cycle_targets = self.cycle_targets.to(self.device)
         if self.first_edit is not None:
             self.first_edit = self.first_edit.to(self.device)
+        if self.blend_votes is not None:
+            self.blend_votes = self.blend_votes.to(self.device)
 
 
 def _normalize(x: torch.Tensor) -> torch.Tensor:
