@@ -427,3 +427,28 @@ def test_added_only_parameters_train_on_added_rows_alone():
     assert state["added_only"] == ["means", "quats", "log_scales", "opacity_logits"]
     with pytest.raises(ValueError, match="unknown parameters"):
         model.set_added_only(["scales"])
+
+
+def test_restore_puts_rows_back_to_their_source_and_stops_adam_moving_them():
+    """A recolour's gate hands rows back to their source colours: the rows take the source's
+    values through `source_index` (wherever they are now), their Adam moments are zeroed, so the
+    next masked step leaves them there, and every other row and parameter is untouched."""
+    source = make_model()
+    model = copy.deepcopy(source)
+    opt = make_adam(model)
+    for _ in range(3):
+        adam_step(model, opt)
+    rows.keep(model, torch.arange(12) != 4, opt)  # rows move: row k >= 4 is source row k + 1
+    back = torch.zeros(11, dtype=torch.bool)
+    back[[0, 5, 9]] = True
+    before = {name: getattr(model, name).detach().clone() for name in PARAM_NAMES}
+    assert rows.restore(model, source, back, ("sh_dc", "sh_rest"), opt) == 3
+    for name in ("sh_dc", "sh_rest"):
+        p = getattr(model, name)
+        assert torch.equal(p.detach()[back], getattr(source, name).detach()[[0, 6, 10]])
+        assert torch.equal(p.detach()[~back], before[name][~back])
+        assert not opt.state[p]["exp_avg"][back].any() and not opt.state[p]["exp_avg_sq"][back].any()
+    assert torch.equal(model.means.detach(), before["means"])
+    model.set_trainable_mask(~back)
+    adam_step(model, opt)
+    assert torch.equal(model.sh_dc.detach()[back], source.sh_dc.detach()[[0, 6, 10]])
