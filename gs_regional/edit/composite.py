@@ -167,8 +167,7 @@ def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_
     d = edited - source
     w = d.pow(2).sum(-1)
     den = gaussian_blur(w[None], sigma)[0]
-    near = torch.stack([gaussian_blur((edited[..., c] * w)[None], sigma)[0] for c in range(3)], -1)
-    near = near / den[..., None].clamp_min(1e-12)
+    near = gaussian_blur((edited * w[..., None]).permute(2, 0, 1), sigma).permute(1, 2, 0) / den[..., None].clamp_min(1e-12)
     way = near - source
     blend = (d * way).sum(-1) / way.pow(2).sum(-1).clamp_min(1e-12)
     return torch.where(den > 1e-12, blend, torch.zeros_like(blend))
