@@ -8,6 +8,7 @@ from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, un
 from gs_regional.edit.localize import expand_selection
 from gs_regional.edit.views import camera_path, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
 from gs_regional.metrics.region import mask_metrics
+from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import sh_to_rgb
 
 
@@ -127,3 +128,42 @@ def test_expand_selection_and_mask_metrics():
     assert expand_selection(means, sel, 0.0).tolist() == [True, False, False]
     m = mask_metrics(torch.tensor([True, True, False]), torch.tensor([True, False, False]))
     assert m["mask_iou"] == 0.5 and m["mask_precision"] == 0.5 and m["mask_recall"] == 1.0
+
+
+def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_it():
+    """A part (depth 2) in front of a wall (depth 5 + a ramp); the edit adds an object at depth 1.8
+    that reaches past the part's silhouette over the wall. As with a small object seen by a real
+    estimator, its disparity over the wall is mostly lost (30 % of the change kept): the transferred
+    depth there is about 3.4, far behind the part, where it used to be dropped as far from the
+    region, and with it half the object. It takes the depth of the geometry beside it instead (the
+    part at 2.0, the object's accepted pixels at 1.8), while over the part the transferred 1.8 stands."""
+    h = w = 32
+    cam = look_at((0.0, 0.0, -4.0), size=w)
+    ramp = torch.linspace(0, 1, w)[None].expand(h, w)
+    part = torch.zeros(h, w, dtype=torch.bool)
+    part[10:22, 8:17] = True
+    d3 = torch.where(part, torch.tensor(2.0), 5.0 + ramp)
+    obj = torch.zeros(h, w, dtype=torch.bool)
+    obj[12:16, 14:20] = True
+    over_part, over_wall = obj & part, obj & ~part
+    alpha = torch.ones(h, w)
+    unedited = torch.full((h, w, 3), 0.5)
+    edited = unedited.clone()
+    edited[obj] = torch.tensor([0.9, 0.1, 0.1])
+    disp_true = torch.where(obj, 1 / torch.tensor(1.8), 1 / d3)
+    disp_seen = torch.where(over_wall, 0.3 * disp_true + 0.7 / d3, disp_true)  # the object's disparity lost over the wall
+    disp_u = 2.0 * (1 / d3) + 0.3
+    disp_e = 5.0 * disp_seen - 0.1
+    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
+    part_means = unproject(cam, d3[part], part.nonzero())
+    params, report, d_new = new_gaussians_from_depth(cam, unedited, edited, part, d3, alpha, disp_u, disp_e, cfg,
+                                                     sh_degree=0, region_means=part_means)
+    reach = over_wall & dilate(part, cfg.dilate_px)  # the object's pixels the (dilated) region reaches
+    assert report["added"] == int(over_part.sum() + reach.sum()) and int(reach.sum()) == 12
+    assert report["moved_onto_part"] == 12 and report["skipped_far_from_region"] == 0
+    assert torch.allclose(d_new[over_part], torch.full((int(over_part.sum()),), 1.8), rtol=1e-4)
+    transferred = 0.3 / 1.8 + 0.7 / 5.6  # what the lost disparity alone would give: about 3.3 deep
+    assert 1 / transferred > 3.0
+    assert float(d_new[reach].min()) >= 1.8 - 1e-4 and float(d_new[reach].max()) <= 2.0 + 1e-4
+    z = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    assert float(z[:, 2].max()) <= 2.0 + 1e-4
