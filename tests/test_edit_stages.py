@@ -167,3 +167,10 @@ def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_
     assert float(d_new[reach].min()) >= 1.8 - 1e-4 and float(d_new[reach].max()) <= 2.0 + 1e-4
     z = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
     assert float(z[:, 2].max()) <= 2.0 + 1e-4
+    # Depth alone is not an object: where the edited view shows nothing new beside the part (a
+    # silhouette's depth noise), those pixels are still dropped.
+    plain = edited.clone()
+    plain[over_wall] = unedited[over_wall]
+    _, report, _ = new_gaussians_from_depth(cam, unedited, plain, part, d3, alpha, disp_u, disp_e, cfg,
+                                            sh_degree=0, region_means=part_means)
+    assert report["moved_onto_part"] == 0 and report["added"] == int(over_part.sum())

@@ -263,6 +263,8 @@ def new_gaussians_from_depth(
                          f"residual {residual:.3f} > system.init.max_calibration_residual={cfg.max_calibration_residual})")
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
+    colour_change = (edited - unedited).abs().amax(-1)
+    shows_edit = colour_change > cfg.noise_sigmas * 1.4826 * float(colour_change[calib_px].median())
     depth_changed = changed_pixels(relative_change, threshold)  # nearer by more than the noise
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
@@ -296,12 +298,16 @@ def new_gaussians_from_depth(
         # is whatever lies behind it (the backdrop), and there a small object's disparity, or a
         # large one's edge, is mostly lost to the estimator's blur and the median filter: the
         # transferred depth puts the pixel far behind the part (a 3-px ball on a head at depth 2.2
-        # landed at 2.9-4.1). When such pixels are most of what changed (dropping them would drop
-        # the object), they take the depth of the geometry beside them: the part's and the
-        # accepted new pixels' depth, carried out from them. A few far pixels at a larger object's
-        # edge are still dropped: the object's own pixels cover it better than they would.
-        far = ~near
-        moved = far & (int(far.sum()) >= int(near.sum()))
+        # landed at 2.9-4.1). When such pixels show the edit (their colour changed beyond the
+        # editor's noise; a silhouette's depth noise does not), are a change on their own (as
+        # `clearly_changed` asks of all candidates) and are most of what changed (dropping them
+        # would drop the object), they take the depth of the geometry beside them: the part's and
+        # the accepted new pixels' depth, carried out from them. A few far pixels at a larger
+        # object's edge are still dropped: the object's own pixels cover it better.
+        moved = ~near & shows_edit[pixels[:, 0], pixels[:, 1]]
+        expected_shown = float((depth_changed & shows_edit)[calib_px].float().mean()) * int(region.sum())
+        if int(moved.sum()) < int(near.sum()) or not clearly_changed(int(moved.sum()), expected_shown, int(region.sum()), cfg):
+            moved = torch.zeros_like(moved)
         if bool(moved.any()):
             known = part & torch.isfinite(d_new)
             known[pixels[near, 0], pixels[near, 1]] = True
