@@ -313,10 +313,9 @@ def new_gaussians_from_depth(
             known[pixels[near, 0], pixels[near, 1]] = True
             onto = carry_depth(d_new, known, cfg.dilate_px)[pixels[:, 0], pixels[:, 1]]
             moved = moved & (onto < depth)
-        if bool(moved.any()):
             depth = torch.where(moved, onto, depth)
             means = torch.where(moved[:, None], unproject(camera, depth, pixels), means)
-            near[moved] = near_region(means[moved], region_means, cfg.max_distance)
+            near = near | (moved & near_region(means, region_means, cfg.max_distance))
             d_new = d_new.clone()
             d_new[pixels[:, 0], pixels[:, 1]] = depth
         report["moved_onto_part"] = int((moved & near).sum())
