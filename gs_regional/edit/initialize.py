@@ -263,8 +263,6 @@ def new_gaussians_from_depth(
                          f"residual {residual:.3f} > system.init.max_calibration_residual={cfg.max_calibration_residual})")
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
-    colour_change = (edited - unedited).abs().amax(-1)
-    shows_edit = colour_change > cfg.noise_sigmas * 1.4826 * float(colour_change[calib_px].median())
     depth_changed = changed_pixels(relative_change, threshold)  # nearer by more than the noise
     candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
@@ -304,6 +302,9 @@ def new_gaussians_from_depth(
         # would drop the object), they take the depth of the geometry beside them: the part's and
         # the accepted new pixels' depth, carried out from them. A few far pixels at a larger
         # object's edge are still dropped: the object's own pixels cover it better.
+        from gs_regional.edit.composite import real_change  # (composite imports match_colors from here)
+
+        shows_edit = real_change(edited, unedited, calib_px, cfg.noise_sigmas, explain_blur=False)[0] > 0
         moved = ~near & shows_edit[pixels[:, 0], pixels[:, 1]]
         expected_shown = float((depth_changed & shows_edit)[calib_px].float().mean()) * int(region.sum())
         if int(moved.sum()) < int(near.sum()) or not clearly_changed(int(moved.sum()), expected_shown, int(region.sum()), cfg):
