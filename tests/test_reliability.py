@@ -118,6 +118,7 @@ DOOR_CASES = [
      ["system.refine.iterations_per_cycle", ">= 1"]),
     ("cycles 0", lambda t: ["system.refine.cycles=0"], ["system.refine.cycles", ">= 1"]),
     ("min_edit_blend above 1", lambda t: ["system.refine.min_edit_blend=1.5"], ["system.refine.min_edit_blend", "[0, 1]"]),
+    ("composite_min_blend below 0", lambda t: ["system.refine.composite_min_blend=-0.1"], ["system.refine.composite_min_blend", "[0, 1]"]),
     ("cycles negative", lambda t: ["system.refine.cycles=-2"], ["system.refine.cycles", ">= 1"]),
     ("t_schedule increasing", lambda t: ["system.refine.t_schedule=[250,500,750]"],
      ["system.refine.t_schedule", "non-increasing"]),

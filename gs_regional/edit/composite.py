@@ -182,6 +182,7 @@ def composite_target(
     noise_sigmas: float = 4.0,
     full_coverage: float = 0.5,
     opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
+    min_blend: float = 0.5,
 ) -> torch.Tensor:
     """The edited view where the edit is, the source render elsewhere: the editor's bleed and the
     blur and tone drift of regenerating the whole image never become targets outside the region,
@@ -195,7 +196,10 @@ def composite_target(
     only where the region renders: fully where it covers at least `full_coverage` of the pixel,
     in proportion below. An edit that may add geometry
     (`added` given, possibly all zero) keeps such changes also within `margin_px` of the region
-    and the added Gaussians: room for geometry the edit adds.
+    and the added Gaussians: room for geometry the edit adds. There, and over the region, a pixel
+    takes the edit only where it takes at least `min_blend` of the edit's nearby colour
+    (`edit_blend`): the editor spills the new object's colour a couple of pixels round it, a clear
+    change too, and trained on it the added Gaussians grew a halo round the object (0 keeps it).
 
     The tone drift is fitted only where the source renders something (`opaque`): empty background
     holds no colour to fit a gain on, and a gain fitted to its clipped noise would crush the whole
@@ -223,4 +227,6 @@ def composite_target(
             # What a blurred source explains is no change here either (`change` is real_change's):
             # the seams between parts, which regenerating the view softens, are no room for new geometry.
             weight = torch.maximum(weight, (near & (change > noise_sigmas * raw_noise)).to(weight.dtype))
+            if min_blend > 0:
+                weight = weight * (edit_blend(edited, source) >= min_blend).to(weight.dtype)
     return weight[..., None] * edited + (1 - weight[..., None]) * source

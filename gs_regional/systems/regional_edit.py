@@ -129,6 +129,10 @@ class RefineConfig:
     # margin): room for geometry the edit adds. A recolour gets no margin.
     composite_dilate: int = 6
     composite_noise_sigmas: float = 4.0
+    # An edit that may change the shape: a target pixel keeps the edit only where it takes at least
+    # this much of the edit's nearby colour (gs_regional.edit.composite.edit_blend); the colour the
+    # editor spills round a new object stays a source pixel. 0 keeps every clear change.
+    composite_min_blend: float = 0.5
     # A pixel the region covers by at least this fraction keeps the edit fully, below it in
     # proportion (gs_regional.edit.composite.composite_target).
     composite_full_coverage: float = 0.5
@@ -229,6 +233,7 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
              r.min_recoloured_fraction)
         need(0 <= r.min_edit_blend <= 1, "refine.min_edit_blend", "a number in [0, 1]", r.min_edit_blend)
+        need(0 <= r.composite_min_blend <= 1, "refine.composite_min_blend", "a number in [0, 1]", r.composite_min_blend)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
         need(r.views_per_step is None or r.views_per_step >= 1, "refine.views_per_step",
@@ -717,7 +722,7 @@ class RegionalEdit(EditSystemBase):
             added = render_selection(self.geometry, self.renderer, cam, self.geometry.generation > 0)
         return composite_target(edited, self.source_renders[index], self.source_region(index), added,
                                 r.composite_dilate, r.composite_noise_sigmas, r.composite_full_coverage,
-                                opaque=self.source_alpha(index) > 0.5)
+                                opaque=self.source_alpha(index) > 0.5, min_blend=r.composite_min_blend)
 
     def training_step(self, batch, batch_idx):
         if self.phase == "localize":
