@@ -42,8 +42,8 @@ def test_targets_leave_the_surroundings_of_the_edit_alone(edit):
             # the first refinement cycle's partial edit of the source render, from the first start
             # timestep each kind gets (refine.t_schedule 750 for a recolour, refine.shape_t_schedule
             # 450 for an edit that may add geometry). From 750 an addition's thin moustache is
-            # jittered by a pixel, and the pixels it half covers, which take under half of its colour,
-            # stay as the source (composite_min_blend): 17.58 -> 15.68 dB in its footprint there.
+            # jittered by a pixel, and the pixels it only partly covers, which take little of its
+            # colour, stay as the source (composite_min_blend): 17.58 -> 16.57 dB in its footprint there.
             t_start = 750 if edit == "recolor" else 450
             edited = editor.edit(source[None], source[None], gt.prompt, t_start=t_start, seed=i, cameras=[cam])[0]
             region = render_selection(gt.source, renderer, cam, gt.region)
@@ -75,12 +75,12 @@ def test_targets_leave_the_surroundings_of_the_edit_alone(edit):
         # An addition keeps, within composite_dilate of the added geometry, what the editor changed
         # beyond its noise (room for the new shape): where a draw's jitter moves the moustache into
         # that margin, the ring shows it; its spilled colour does not (composite_min_blend). Measured
-        # over the 9 draws at t = 450: 40.7 -> 120 dB (45.9 before the spill was left out).
+        # over the 9 draws at t = 450: 40.7 -> 120 dB.
         assert ring_new >= ring_former + 6.0
     if edit == "add":
         # Leave well alone: where the region does not change, the target is the source, not the
-        # editor's regenerated (blurred, tone-shifted) image (30.4 -> 120 dB at t = 450; 40.2 before
-        # the spill was left out: the moustache's colour spilled onto the face round it).
+        # editor's regenerated (blurred, tone-shifted) image (30.4 -> 41.0 dB at t = 450; 40.2 before
+        # composite_min_blend: the moustache's colour spilled onto the face round it).
         alone_new = psnr(r["new"], r["truth"], r["alone"])
         alone_editor = psnr(r["edited"], r["truth"], r["alone"])
         print(f"region left alone vs truth: editor {alone_editor:.2f}, target {alone_new:.2f} dB")
@@ -313,7 +313,8 @@ def test_an_addition_takes_the_new_object_not_the_colour_the_editor_spilled_arou
     soft halo round the object that no view agrees on (big balls at 39-45 dB outside the true
     footprint). Known answer: a dark disc drawn half over the head, half over the body, its
     colour spilled around it at up to half strength as the simulated editor does; the target
-    keeps the disc and leaves the spill, over the head and over the body, as the source."""
+    keeps the disc and leaves the spill under composite_min_blend, over the head and over the
+    body, as the source."""
     gen = torch.Generator().manual_seed(0)
     h = w = 48
     source, region = _head_on_body(gen, h, w)
@@ -327,7 +328,7 @@ def test_an_addition_takes_the_new_object_not_the_colour_the_editor_spilled_arou
     target = composite_target(edited, source, region.float(), added=torch.zeros(h, w), margin_px=6)
     kept = (target[disc > 0] - source[disc > 0]).abs().mean() / (edited[disc > 0] - source[disc > 0]).abs().mean()
     assert kept >= 0.9, "the new object was not kept"
-    spilled = (disc == 0) & (ring > 0.05)
+    spilled = (disc == 0) & (ring > 0.02) & (ring < 0.3)  # under composite_min_blend (0.35)
     assert bool((spilled & region).any()) and bool((spilled & ~region).any())
     for where, name in ((spilled & region, "over the region"), (spilled & ~region, "beside the region")):
         assert psnr(target[where], source[where]) >= 40, f"the spilled colour {name} became a target"

@@ -131,8 +131,9 @@ class RefineConfig:
     composite_noise_sigmas: float = 4.0
     # An edit that may change the shape: a target pixel keeps the edit only where it takes at least
     # this much of the edit's nearby colour (gs_regional.edit.composite.edit_blend); the colour the
-    # editor spills round a new object stays a source pixel. 0 keeps every clear change.
-    composite_min_blend: float = 0.5
+    # editor spills round a new object stays a source pixel. 0 keeps every clear change; 0.5 drops
+    # more of the spill but also the pixels a small object half covers (docs/method.md).
+    composite_min_blend: float = 0.35
     # A pixel the region covers by at least this fraction keeps the edit fully, below it in
     # proportion (gs_regional.edit.composite.composite_target).
     composite_full_coverage: float = 0.5
