@@ -85,7 +85,7 @@ MIN_REGION_TO_ADDED = 1.0  # an addition's region holds at least the object's ow
 METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited",
-    "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_precision", "mask_recall", "view_agreement",
+    "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall", "view_agreement",
     "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
     "stopped", "warnings", "count_selected", "count_recolour_declined",
@@ -554,10 +554,23 @@ def resolve_only(seed: int, n_cases: int, quick: bool, out: str) -> int:
     return 0
 
 
-def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = ()) -> dict:
+def select_cases(cases: Sequence[dict], only: Sequence[str] = (), kinds: Sequence[str] = (), seed: int = 0) -> List[dict]:
+    """The cases named in `only` (all when empty) of the `kinds` given ("recolor", "add"; all
+    when empty), in the draw's order: a subset of a draw re-runs exactly as in the whole draw."""
+    unknown = sorted(set(only) - {c["id"] for c in cases})
+    if unknown:
+        raise SystemExit(f"--only: no case {', '.join(unknown)} in draw {seed} (its cases: "
+                         f"{cases[0]['id']}..{cases[-1]['id']})")
+    return [c for c in cases if (not only or c["id"] in only) and (not kinds or c["kind"].split("_")[0] in kinds)]
+
+
+def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = (),
+              only: Sequence[str] = (), kinds: Sequence[str] = ()) -> dict:
+    """Run the draw's cases (those named in `only`, of the `kinds` given, when given) and write
+    the JSON after each."""
     s = settings(quick)
     s["budget"] = s["budget"] + list(overrides)  # every case's launch.py overrides
-    cases = draw(seed, n_cases, quick)
+    cases = select_cases(draw(seed, n_cases, quick), only, kinds, seed)
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
     subjects, missing = subjects_for(cases, out, s)
@@ -640,6 +653,7 @@ DISTRIBUTION = (
     ("unedited PSNR (dB)", lambda r: r.get("psnr_unedited")),
     ("mask IoU", lambda r: r.get("mask_iou")),
     ("mask IoU (seen)", lambda r: r.get("mask_iou_seen")),
+    ("mask IoU from exact 2D masks", lambda r: r.get("mask_iou_exact_masks")),
     ("added / truth's added (adds)", lambda r: _ratio_added(r) if r["kind"].startswith("add") else None),
     ("added / region (recolours)", lambda r: _ratio_added(r) if r["kind"].startswith("recolor") else None),
     ("region / true added (adds)", lambda r: r.get("region_to_added") if r["kind"].startswith("add") else None),
@@ -737,6 +751,9 @@ def main(argv=None) -> int:
     ap.add_argument("--resolve-only", action="store_true",
                     help="prepare the scenes and place every drawn case on its splat (anchors, truth counts), no runs")
     ap.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
+    ap.add_argument("--only", nargs="+", default=[], metavar="ID", help="run only these cases of the draw (e.g. c03 c17)")
+    ap.add_argument("--kinds", nargs="+", default=[], choices=["recolor", "add"],
+                    help="run only the recolours or the additions of the draw")
     ap.add_argument("overrides", nargs="*", help="launch.py overrides (key=value) for every case, e.g. an ablation: "
                     "system.localize_with_truth=true")
     args = ap.parse_args(argv)
@@ -758,7 +775,7 @@ def main(argv=None) -> int:
             return resolve_only(seed, n, args.quick, args.out)
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, min(args.threads or cores, cores)))
-        payload = run_suite(seed, n, args.quick, args.out, args.overrides)
+        payload = run_suite(seed, n, args.quick, args.out, args.overrides, args.only, args.kinds)
     chart(payload, os.path.join(args.out, PNG_NAME))
     result = print_report(payload)
     if "wall_seconds" in payload:

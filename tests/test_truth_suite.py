@@ -4,6 +4,7 @@ needs ../shared/data) runs end to end and writes the JSON and the chart. The qui
 of the script, not a measurement."""
 import json
 
+import pytest
 import truth_suite
 
 SEED = 11
@@ -42,6 +43,18 @@ def test_an_unseeded_draw_prints_its_seed_and_that_seed_redraws_it(capsys):
     assert truth_suite.main(["--draw-only", "--seed", str(seed)]) == 0
     assert capsys.readouterr().out.splitlines() == first
     assert [json.loads(line) for line in first[1:]] == truth_suite.draw(seed, 24)
+
+
+def test_a_subset_of_a_draw_is_its_cases_as_drawn_and_an_unknown_id_is_named():
+    cases = truth_suite.draw(SEED, 24)
+    picked = truth_suite.select_cases(cases, only=["c07", "c02"])
+    assert [c["id"] for c in picked] == ["c02", "c07"] and picked == [cases[1], cases[6]]
+    recolours = truth_suite.select_cases(cases, kinds=["recolor"])
+    assert len(recolours) == 12 and all(c["kind"].startswith("recolor_") for c in recolours)
+    assert truth_suite.select_cases(cases, only=["c02", "c07"], kinds=["add"]) == [
+        c for c in (cases[1], cases[6]) if c["kind"].startswith("add_")]
+    with pytest.raises(SystemExit, match="c31"):
+        truth_suite.select_cases(cases, only=["c02", "c31"], seed=SEED)
 
 
 def test_targets_name_the_cases_that_miss_them():

@@ -112,7 +112,7 @@ def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) 
 def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
     reweight_iters: int = 2, agreement_power: float = 2.0, knn: int = 16,
-    images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0,
+    images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, views: Optional[Sequence[PixelWeights]] = None,
 ) -> dict:
     """§3.1 step 4 with three robustness steps of our own (all can be switched off):
 
@@ -126,11 +126,12 @@ def localize_gaussians(
       the lift is repeated `reweight_iters` times; views that disagree with the consensus fade.
     * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
       rarely seen Gaussians follow their neighbourhood.
+    `views`: the cameras' `PixelWeights` of an earlier lift of the same geometry (no new renders).
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
     `PixelWeights` of the cameras, to render selections back without new renders, "seen": (N,)
     each Gaussian's rendering weight summed over the views, in pixels}.
     """
-    views = view_weights(model, renderer, cameras)
+    views = view_weights(model, renderer, cameras) if views is None else views
     num, den = mask_votes(views, masks)
     if edge_ratio > 0:
         if images is None:

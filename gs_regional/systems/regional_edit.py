@@ -314,8 +314,9 @@ class RegionalEdit(EditSystemBase):
                 images[ks], cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
                 samples=lc.samples, seed=cfg.seed, cameras=[cams[k] for k in ks],
             ), images.shape[1:3])
+            cams = [c.to(self.device) for c in cams]
             lifted = localize_gaussians(
-                g, self.renderer, [c.to(self.device) for c in cams], masks, threshold=lc.mask_threshold,
+                g, self.renderer, cams, masks, threshold=lc.mask_threshold,
                 reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
                 images=images, edge_ratio=lc.edge_colour_ratio,
             )
@@ -345,6 +346,16 @@ class RegionalEdit(EditSystemBase):
                 seen = lifted["seen"].cpu() >= SEEN_MIN_WEIGHT
                 self.localize_metrics["mask_iou_seen"] = mask_metrics(self.source_selection.cpu()[seen], truth[seen])["mask_iou"]
                 self.localize_metrics["region_unseen"] = int((truth & ~seen).sum())
+                # What the same lift makes of exact 2D masks (the true region's own render, > 0.5):
+                # the IoU the views' resolution allows, apart from the relevance maps' errors (a
+                # region a few pixels across loses its half-covered pixels and scores lower).
+                exact = [splat_selection(v, truth.to(self.device)) > 0.5 for v in lifted["views"]]
+                ceiling = localize_gaussians(
+                    g, self.renderer, cams, exact, threshold=lc.mask_threshold, reweight_iters=lc.reweight_iters,
+                    agreement_power=lc.agreement_power, knn=lc.knn, images=images, edge_ratio=lc.edge_colour_ratio,
+                    views=lifted["views"])["selected"]
+                self.localize_metrics["mask_iou_exact_masks"] = mask_metrics(
+                    rows.source_rows(g, ceiling, self.n_source).cpu(), truth)["mask_iou"]
         # The selection rendered back into each view, from the lift's kept pixel weights when there
         # was a lift (no new renders); initialization reuses these masks.
         weights = lifted["views"] if masks is not None else None
