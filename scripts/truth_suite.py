@@ -580,7 +580,8 @@ def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequenc
             print(f"!! LEFT OUT: {why}: its cases do not run (set GS_REGIONAL_DATA to the folder holding "
                   "donut/ and face/)")
         print("!" * 100 + "\n", flush=True)
-    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "settings": {**s, "common": COMMON},
+    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "only": list(only), "kinds": list(kinds),
+               "settings": {**s, "common": COMMON},
                "shared_data": SHARED_DATA, "left_out": missing, "records": []}
     runs_dir = os.path.join(out, "runs")
     todo = [c for c in cases if c["native"] or c["scene"] in subjects]
@@ -743,8 +744,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=None, help="the draw's seed (default: a fresh one, printed)")
     ap.add_argument("--cases", type=int, default=None, help="cases to draw (default 24; 3 with --quick)")
     ap.add_argument("--quick", action="store_true", help="3 cases on synthetic scenes at tiny budgets (the test's mode)")
-    ap.add_argument("--out", default=os.path.join(ROOT, "outputs", "truth_suite"),
-                    help=f"folder for {JSON_NAME}, {PNG_NAME}, the scenes, the face fit and the runs")
+    ap.add_argument("--out", default=None,
+                    help=f"folder for {JSON_NAME}, {PNG_NAME}, the scenes, the face fit and the runs (default "
+                         "outputs/truth_suite; with --only or --kinds outputs/truth_suite/part, so that a whole "
+                         "draw's results are not overwritten)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: the cores this process may use)")
     ap.add_argument("--replot", action="store_true", help=f"no runs: the chart and the distribution of OUT/{JSON_NAME}")
     ap.add_argument("--draw-only", action="store_true", help="print the drawn cases and stop")
@@ -757,6 +760,8 @@ def main(argv=None) -> int:
     ap.add_argument("overrides", nargs="*", help="launch.py overrides (key=value) for every case, e.g. an ablation: "
                     "system.localize_with_truth=true")
     args = ap.parse_args(argv)
+    if args.out is None:
+        args.out = os.path.join(ROOT, "outputs", "truth_suite", *(["part"] if args.only or args.kinds else []))
     if args.replot:
         with open(os.path.join(args.out, JSON_NAME)) as f:
             payload = json.load(f)

@@ -90,7 +90,7 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
         for key in truth_suite.METRIC_KEYS:
             assert key in r, key
         for key in ("psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
-                    "psnr_unedited", "mask_iou", "gaussians_added", "true_gaussians_added", "source_deleted",
+                    "psnr_unedited", "mask_iou", "mask_iou_exact_masks", "gaussians_added", "true_gaussians_added", "source_deleted",
                     "unet_evals", "seconds_total"):
             assert r[key] is not None, key
         assert r["gain"] == r["psnr_region_vs_true_edit"] - r["psnr_region_source_vs_true_edit"]
@@ -104,3 +104,10 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
     png.unlink()
     assert truth_suite.main(["--replot", "--out", str(tmp_path)]) == 0
     assert png.exists()
+    # --only re-runs one case of the draw as it ran in the whole draw
+    part = tmp_path / "part"
+    assert truth_suite.main(["--quick", "--seed", str(SEED), "--only", "c02", "--out", str(part)]) == 0
+    again = json.loads((part / "truth_suite.json").read_text())
+    assert again["only"] == ["c02"] and [r["id"] for r in again["records"]] == ["c02"]
+    for key in ("psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "mask_iou", "gaussians_added", "unet_evals"):
+        assert again["records"][0][key] == records[1][key], key
