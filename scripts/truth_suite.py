@@ -102,13 +102,16 @@ FACE_DOWNSCALE, FACE_CAMERAS = 8.0, 24
 
 
 # ------------------------------------------------------------------------------------------ budget
-def settings(quick: bool) -> dict:
-    """Scene size and the regional edit's budget of every case."""
+def settings(quick: bool, size: Optional[int] = None) -> dict:
+    """Scene size and the regional edit's budget of every case; `size` (px) replaces the views'
+    side (64; 48 when quick), the face photos scaled to match."""
     if quick:
-        return {"n_cameras": 16, "size": 48, "face_downscale": FACE_DOWNSCALE * 64 / 48,
-                "budget": sweeps.regional_budget(1, 10, 3) + ["system.localization.max_views=6"]}
-    return {"n_cameras": 24, "size": 64, "face_downscale": FACE_DOWNSCALE,
-            "budget": sweeps.regional_budget(3, 60, 6)}
+        s = {"n_cameras": 16, "size": 48, "budget": sweeps.regional_budget(1, 10, 3) + ["system.localization.max_views=6"]}
+    else:
+        s = {"n_cameras": 24, "size": 64, "budget": sweeps.regional_budget(3, 60, 6)}
+    s["size"] = size or s["size"]
+    s["face_downscale"] = FACE_DOWNSCALE * 64 / s["size"]
+    return s
 
 
 COMMON = ["system.eval.turntable_frames=2", "checkpoint.every_n_train_steps=1000000"]
@@ -539,9 +542,9 @@ def subjects_for(cases: Sequence[dict], out: str, s: dict) -> Tuple[Dict[str, Su
     return subjects, missing
 
 
-def resolve_only(seed: int, n_cases: int, quick: bool, out: str) -> int:
+def resolve_only(seed: int, n_cases: int, quick: bool, out: str, size: Optional[int] = None) -> int:
     """Place every drawn case on its scene and print what would run."""
-    s = settings(quick)
+    s = settings(quick, size)
     cases = draw(seed, n_cases, quick)
     subjects, missing = subjects_for(cases, out, s)
     for why in missing:
@@ -568,10 +571,10 @@ def select_cases(cases: Sequence[dict], only: Sequence[str] = (), kinds: Sequenc
 
 
 def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = (),
-              only: Sequence[str] = (), kinds: Sequence[str] = ()) -> dict:
+              only: Sequence[str] = (), kinds: Sequence[str] = (), size: Optional[int] = None) -> dict:
     """Run the draw's cases (those named in `only`, of the `kinds` given, when given) and write
     the JSON after each."""
-    s = settings(quick)
+    s = settings(quick, size)
     s["budget"] = s["budget"] + list(overrides)  # every case's launch.py overrides
     cases = select_cases(draw(seed, n_cases, quick), only, kinds, seed)
     os.makedirs(out, exist_ok=True)
@@ -751,6 +754,8 @@ def main(argv=None) -> int:
                     help=f"folder for {JSON_NAME}, {PNG_NAME}, the scenes, the face fit and the runs (default "
                          "outputs/truth_suite; with --only or --kind outputs/truth_suite/part, so that a whole "
                          "draw's results are not overwritten)")
+    ap.add_argument("--size", type=int, default=None, metavar="PX",
+                    help="the views' side in pixels (default 64; 48 with --quick): the same draw at another resolution")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: the cores this process may use)")
     ap.add_argument("--replot", action="store_true", help=f"no runs: the chart and the distribution of OUT/{JSON_NAME}")
     ap.add_argument("--draw-only", action="store_true", help="print the drawn cases and stop")
@@ -782,10 +787,10 @@ def main(argv=None) -> int:
         import torch
 
         if args.resolve_only:
-            return resolve_only(seed, n, args.quick, args.out)
+            return resolve_only(seed, n, args.quick, args.out, args.size)
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, min(args.threads or cores, cores)))
-        payload = run_suite(seed, n, args.quick, args.out, args.overrides, only, kinds)
+        payload = run_suite(seed, n, args.quick, args.out, args.overrides, only, kinds, args.size)
     chart(payload, os.path.join(args.out, PNG_NAME))
     result = print_report(payload)
     if "wall_seconds" in payload:

@@ -57,6 +57,13 @@ def test_a_subset_of_a_draw_is_its_cases_as_drawn_and_an_unknown_id_is_named():
         truth_suite.select_cases(cases, only=["c02", "c31"], seed=SEED)
 
 
+def test_another_size_scales_the_views_and_the_face_photos_alike():
+    assert truth_suite.settings(False)["size"] == 64 and truth_suite.settings(True)["size"] == 48
+    big = truth_suite.settings(False, 128)
+    assert big["size"] == 128 and big["face_downscale"] == truth_suite.FACE_DOWNSCALE / 2
+    assert big["budget"] == truth_suite.settings(False)["budget"]  # the same edit, more pixels
+
+
 def test_targets_name_the_cases_that_miss_them():
     def rec(i, kind, g, outside, stopped=None, added=0):
         return {"id": f"c{i}", "kind": kind, "gain": g, "psnr_outside_vs_true_edit": outside, "psnr_unedited": 60.0,
