@@ -54,7 +54,8 @@ refinement cycle of 10 iterations.
 --replot redraws the chart and the distribution from OUT/truth_suite.json without running.
 --only c03,c17 and --kind recolor|add re-run part of a draw, each case as in the whole draw (into
 outputs/truth_suite/part unless --out is given). `system.localization.min_view_agreement=1.01`
-stops every run right after localization: a draw's mask IoU in about 2 minutes.
+stops every run right after localization: a draw's mask IoU in about 2 minutes. --size 128 runs
+the draw at 128² views instead of 64² (the face photos scaled alike).
 """
 from __future__ import annotations
 
