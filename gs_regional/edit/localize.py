@@ -112,7 +112,7 @@ def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) 
 def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
     reweight_iters: int = 2, agreement_power: float = 2.0, knn: int = 16,
-    images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, views: Optional[Sequence[PixelWeights]] = None,
+    images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, reuse: Optional[dict] = None,
 ) -> dict:
     """§3.1 step 4 with three robustness steps of our own (all can be switched off):
 
@@ -126,12 +126,14 @@ def localize_gaussians(
       the lift is repeated `reweight_iters` times; views that disagree with the consensus fade.
     * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
       rarely seen Gaussians follow their neighbourhood.
-    `views`: the cameras' `PixelWeights` of an earlier lift of the same geometry (no new renders).
+    `reuse`: the result of an earlier lift of the same geometry from the same cameras with the same
+    `knn`: its pixel weights and neighbourhoods are taken as they are (no new renders, no new search).
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
     `PixelWeights` of the cameras, to render selections back without new renders, "seen": (N,)
-    each Gaussian's rendering weight summed over the views, in pixels}.
+    each Gaussian's rendering weight summed over the views, in pixels, "neighbourhood": the rows
+    votes were pooled over (None when knn <= 1)}.
     """
-    views = view_weights(model, renderer, cameras) if views is None else views
+    views = view_weights(model, renderer, cameras) if reuse is None else reuse["views"]
     num, den = mask_votes(views, masks)
     if edge_ratio > 0:
         if images is None:
@@ -141,7 +143,10 @@ def localize_gaussians(
             colours = sh_to_color(model.sh_degree, model.sh.detach(), model.means.detach(), cam.center).clamp(0, 1)
             num[v] -= outside_like_edge_votes(view, colours, edge[v], mean_in[v], mean_out[v], edge_ratio)
     # the neighbours do not change between reweighting passes: found once
-    neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
+    if reuse is not None:
+        neighbourhood = reuse["neighbourhood"]
+    else:
+        neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
     weights = torch.ones(len(cameras), device=num.device)
     for it in range(reweight_iters + 1):
         s_num = (weights[:, None] * num).sum(0)
@@ -154,7 +159,8 @@ def localize_gaussians(
             weights = mask_agreement(views, masks, selected) ** agreement_power
             if float(weights.sum()) <= 0:
                 break
-    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": den.sum(0)}
+    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": den.sum(0),
+            "neighbourhood": neighbourhood}
 
 
 def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float) -> torch.Tensor:

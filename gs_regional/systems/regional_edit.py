@@ -315,11 +315,9 @@ class RegionalEdit(EditSystemBase):
                 samples=lc.samples, seed=cfg.seed, cameras=[cams[k] for k in ks],
             ), images.shape[1:3])
             cams = [c.to(self.device) for c in cams]
-            lifted = localize_gaussians(
-                g, self.renderer, cams, masks, threshold=lc.mask_threshold,
-                reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
-                images=images, edge_ratio=lc.edge_colour_ratio,
-            )
+            lift = dict(threshold=lc.mask_threshold, reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power,
+                        knn=lc.knn, images=images, edge_ratio=lc.edge_colour_ratio)
+            lifted = localize_gaussians(g, self.renderer, cams, masks, **lift)
             selected = lifted["selected"]
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
@@ -350,10 +348,7 @@ class RegionalEdit(EditSystemBase):
                 # the IoU the views' resolution allows, apart from the relevance maps' errors (a
                 # region a few pixels across loses its half-covered pixels and scores lower).
                 exact = [splat_selection(v, truth.to(self.device)) > 0.5 for v in lifted["views"]]
-                ceiling = localize_gaussians(
-                    g, self.renderer, cams, exact, threshold=lc.mask_threshold, reweight_iters=lc.reweight_iters,
-                    agreement_power=lc.agreement_power, knn=lc.knn, images=images, edge_ratio=lc.edge_colour_ratio,
-                    views=lifted["views"])["selected"]
+                ceiling = localize_gaussians(g, self.renderer, cams, exact, reuse=lifted, **lift)["selected"]
                 self.localize_metrics["mask_iou_exact_masks"] = mask_metrics(
                     rows.source_rows(g, ceiling, self.n_source).cpu(), truth)["mask_iou"]
         # The selection rendered back into each view, from the lift's kept pixel weights when there
