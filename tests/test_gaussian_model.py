@@ -290,6 +290,24 @@ def test_densify_strategy_schedule_and_caps():
 
     with pytest.raises(ConfigError, match="system.densify.every"):
         DensifyStrategy(every=0).check("system.densify")
+    with pytest.raises(ConfigError, match="system.densify.rounds"):
+        DensifyStrategy(every=None, rounds=0).check("system.densify")
+
+
+def test_densify_rounds_do_not_grow_with_the_schedule():
+    """`every: null`: `rounds` evenly spaced densifications over the caller's schedule, so a cycle
+    twice as long trains longer between the same rounds instead of densifying twice as often."""
+    once = DensifyStrategy(start=0, stop=None, every=None, rounds=1)
+    assert [t for t in range(60) if once.densifies_at(t, last_step=59)] == [30]
+    assert [t for t in range(120) if once.densifies_at(t, last_step=119)] == [60]
+    three = DensifyStrategy(start=0, stop=None, every=None, rounds=3)
+    assert [t for t in range(100) if three.densifies_at(t, last_step=99)] == [25, 50, 75]
+    assert [t for t in range(3) if three.densifies_at(t, last_step=2)] == [1]  # too short for three: no repeats
+    with pytest.raises(ValueError, match="last_step"):
+        once.densifies_at(30)
+    from gs_regional.systems.regional_edit import RegionalEdit
+
+    assert RegionalEdit.Config().densify.every is None and RegionalEdit.Config().densify.rounds == 1
 
 
 def test_refine_densifies_when_due_with_the_budget():

@@ -33,7 +33,13 @@ class DensifyStrategy:
     enabled: bool = True  # false: no statistics, densification, pruning or opacity reset
     start: int = 100  # first step that densifies (statistics are gathered from step 0)
     stop: Optional[int] = 1500  # no densification, statistics or opacity reset from this step on; null: none
-    every: int = 100  # densify every n steps
+    every: Optional[int] = 100  # densify every n steps; null: `rounds` times over the schedule
+    # With `every` null: densify this many times, evenly spaced over the schedule that the caller's
+    # `last_step` ends (the regional edit: each refinement cycle). Lengthening the schedule then
+    # trains longer between the same rounds instead of adding rounds: an edit's targets disagree
+    # from view to view, so the gradient that densification reads never settles, and every extra
+    # round clones the Gaussians where the views disagree (docs/method.md).
+    rounds: int = 1
     # Mean view-space gradient norm above which a Gaussian is cloned or split. In NDC units
     # (pixel gradient x half the image size), as 3DGS's 2e-4: independent of the resolution.
     grad_threshold: float = 0.0002
@@ -58,8 +64,10 @@ class DensifyStrategy:
 
     def check(self, where: str = "densify") -> None:
         """Raise a ConfigError naming the key (`where`.<key>) for impossible settings."""
-        if self.every < 1:
-            raise ConfigError(f"{where}.every must be >= 1, got {self.every}")
+        if self.every is not None and self.every < 1:
+            raise ConfigError(f"{where}.every must be >= 1 or null (`rounds` evenly spaced rounds), got {self.every}")
+        if self.every is None and self.rounds < 1:
+            raise ConfigError(f"{where}.rounds must be >= 1 (densifications over the schedule), got {self.rounds}")
         if self.child_generation < 0:
             raise ConfigError(f"{where}.child_generation must be >= 0, got {self.child_generation}")
         if self.opacity_reset_every < 0:
@@ -77,11 +85,18 @@ class DensifyStrategy:
         return self.enabled and self._before_stop(step)
 
     def densifies_at(self, step: int, last_step: Optional[int] = None) -> bool:
-        """Every `every` steps in [start, stop), never at step 0 nor at `last_step` (the last step
-        of the system's schedule, whose new Gaussians would never be trained)."""
+        """Every `every` steps (or `rounds` times, evenly spaced up to `last_step`) in [start,
+        stop), never at step 0 nor at `last_step` (the last step of the system's schedule, whose
+        new Gaussians would never be trained)."""
+        if self.every is None:
+            if last_step is None:
+                raise ValueError("DensifyStrategy.every is null: pass last_step, the end of the schedule that `rounds` spans")
+            due = step in {(k * (last_step + 1)) // (self.rounds + 1) for k in range(1, self.rounds + 1)}
+        else:
+            due = step % self.every == 0
         return (
             self.enabled and step > 0 and step >= self.start and self._before_stop(step)
-            and step % self.every == 0 and (last_step is None or step < last_step)
+            and due and (last_step is None or step < last_step)
         )
 
     def resets_opacity_at(self, step: int) -> bool:

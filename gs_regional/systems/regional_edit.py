@@ -176,14 +176,15 @@ class RegionalEdit(EditSystemBase):
         localization: LocalizeConfig = field(default_factory=LocalizeConfig)
         init: InitConfig = field(default_factory=InitConfig)
         refine: RefineConfig = field(default_factory=RefineConfig)
-        # Densification during refinement. Its steps count within each cycle (never at a cycle's
-        # last step); only the editable Gaussians are densified and pruned unless
-        # refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
+        # Densification during refinement: `rounds` times in each cycle, evenly spaced (once, at
+        # its middle), whatever the cycle's length (`every: N` instead: every N steps within each
+        # cycle, never at its last step); only the editable Gaussians are densified and pruned
+        # unless refine.optimize_all; `budget` caps the Gaussians above the count when refinement began.
         # The threshold (5e-4, 2.5x 3DGS's) sits at the knee of scripts/compactness.py on the
         # synthetic add: fewer Gaussians would cost quality, more add none (docs/results.md).
         densify: DensifyStrategy = field(
             default_factory=lambda: DensifyStrategy(
-                start=0, stop=None, every=100, opacity_reset_every=0, max_gaussians=None, budget=20000,
+                start=0, stop=None, every=None, rounds=1, opacity_reset_every=0, max_gaussians=None, budget=20000,
                 child_generation=1, grad_threshold=5e-4, prune_only_added=True,
             )
         )
