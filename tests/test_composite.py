@@ -444,3 +444,19 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
     free = metrics(trial(tmp_path, "free"))
     assert gated["psnr_outside_vs_true_edit"] > free["psnr_outside_vs_true_edit"] + 2.0, (gated, free)
     assert gated["psnr_region_vs_true_edit"] > free["psnr_region_vs_true_edit"] - 0.5
+
+
+def test_a_recolour_the_gate_declines_entirely_says_so(tmp_path, monkeypatch):
+    """When the edited views recolour none of the selected Gaussians by `min_edit_blend` (here the
+    blend is forced to 0), each keeps its source colours and the scene comes out unchanged: the run
+    says so in metrics.json `warnings` instead of passing a no-op off as an edit."""
+    from test_reliability import launch, metrics, trial
+    from gs_regional.systems import regional_edit
+
+    monkeypatch.setattr(regional_edit, "edit_blend", lambda edited, source: torch.zeros(edited.shape[:2]))
+    assert launch(tmp_path, "declined", "data.edit=recolor", "system.prompt=make his head red",
+                  "system.refine.iterations_per_cycle=6") == 0
+    m = metrics(trial(tmp_path, "declined"))
+    assert m["count_selected"] > 0 and m["count_recolour_taken"] == 0
+    assert m["psnr_unedited"] == 120.0 and m["gaussians_added"] == 0
+    assert any("recolour none of the" in w and "min_edit_blend" in w for w in m["warnings"]), m["warnings"]

@@ -323,7 +323,7 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
             selected = parallel.from_rank_zero(self, selected)  # every process edits one selection
-            iou = mask_agreement(lifted["views"], masks, selected)
+            iou = mask_agreement(lifted["views"], masks, selected, faint=True)
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
@@ -694,6 +694,7 @@ class RegionalEdit(EditSystemBase):
         rows.restore(g, self.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, self.optimizers())
         g.mask.copy_(takes)
         self.counts["recolour_declined"] = int((selected & ~takes).sum())
+        self.counts["recolour_taken"] = int((selected & (den >= SEEN_MIN_WEIGHT) & takes).sum())  # seen and recoloured
 
     def view_seed(self, cycle: int, index: int) -> int:
         """The editor's seed for view `index` in refinement cycle `cycle`."""
@@ -841,6 +842,11 @@ class RegionalEdit(EditSystemBase):
         self.add_time("prune", time.perf_counter() - t0)
         self.counts["pruned_added"] = n
         self.counts["pruned"] = self.counts.get("pruned", 0) + n
+        if self.counts.get("recolour_taken") == 0:  # the gate ran and let no Gaussian an edited view sees through
+            self.warn(f"refine: the edited views recolour none of the {self.counts.get('selected', 0):,} selected "
+                      f"Gaussians by system.refine.min_edit_blend={self.cfg.refine.min_edit_blend} of the edit's colour, "
+                      "so each kept its source colours and the scene comes out unchanged; a lower min_edit_blend lets "
+                      "the edit through")
 
     def on_train_end(self) -> None:
         if self.phase == "done":
