@@ -89,15 +89,14 @@ def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch
 def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor], selected: torch.Tensor,
                    faint: bool = False) -> torch.Tensor:
     """IoU, per view, of the 2D mask with the render of the 3D selection (V,): the pixels the
-    selection covers by more than half. With `faint`, a view where it covers no pixel by half (a
-    region a pixel or two across at the view's resolution, or one mostly hidden there) compares
-    the pixels it covers by more than half of its most, instead of none: its IoU would otherwise
-    be 0 however well the masks agree (the run's "views disagree" check uses it; the lift's view
-    weights do not, so that such views keep no say in the lift)."""
+    selection covers by more than half. With `faint` (the views-disagree stop), a view in which it
+    covers no pixel by half (a part a pixel or two across) uses the pixels it covers by more than
+    half of its most, whose IoU is otherwise 0 whatever the mask; the lift's view weights keep the
+    plain rule, so such views have no say in the lift."""
     out = []
     for view, m in zip(views, masks):
         cover = splat_selection(view, selected)
-        peak = float(cover.max()) if cover.numel() else 0.0
+        peak = float(cover.max())
         r = cover > (0.5 * peak if faint and peak <= 0.5 else 0.5)
         m = m.to(r.device) > 0.5
         out.append(float((r & m).sum()) / max(float((r | m).sum()), 1.0))
