@@ -92,7 +92,7 @@ METRIC_KEYS = (
     "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall", "view_agreement",
     "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
-    "stopped", "warnings", "count_selected", "count_recolour_declined", "count_recolour_taken",
+    "stopped", "warnings", "count_selected", "count_recolour_declined", "count_recolour_taken", "count_recolour_distinct",
 )
 
 # The face fit (configs/reconstruct.yaml), cached in OUT/face_fit while these settings match.

@@ -6,6 +6,7 @@ from typing import Optional, Tuple
 import torch
 
 from gs_regional.edit.initialize import match_colors
+from gs_regional.geometry.neighbors import column_quantile
 from gs_regional.utils.image import dilate, gaussian_blur
 
 
@@ -171,6 +172,26 @@ def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_
     way = near - source
     blend = (d * way).sum(-1) / way.pow(2).sum(-1).clamp_min(1e-12)
     return torch.where(den > 1e-12, blend, torch.zeros_like(blend))
+
+
+def distinct_parts(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor, full_blend: float,
+                   quantile: float = 0.95, margin: float = 1.5, min_distance: float = 0.25) -> torch.Tensor:
+    """(N,) bool: Gaussians of a recolour's selection that are a part of their own, not the part
+    being recoloured: seen, recoloured by less than `full_blend` (`blend`: mean edit_blend over
+    their views), and further in source colour (`colours`, (N, 3)) from the median colour of the
+    Gaussians the edit recolours fully (blend >= full_blend) than `margin` times the distance
+    `quantile` of those stay within, and at least `min_distance` (RGB in [0, 1]) from it.
+
+    The editor spills about half of its colour onto a small part enclosed by the edited one (eyes
+    in a head), which is as much as the edited part's own edge takes; the edge shares the part's
+    colours, the enclosed part does not."""
+    core = seen & (blend >= full_blend)
+    if int(core.sum()) < 2:
+        return torch.zeros_like(seen)
+    centre = column_quantile(colours[core], 0.5)
+    distance = (colours - centre).norm(dim=-1)
+    reach = column_quantile(distance[core][:, None], quantile)[0]
+    return seen & (blend < full_blend) & (distance > max(margin * float(reach), min_distance))
 
 
 def composite_target(

@@ -9,7 +9,7 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import composite_target, edit_blend, edit_change, recoloured_fraction
+from gs_regional.edit.composite import composite_target, distinct_parts, edit_blend, edit_change, recoloured_fraction
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
@@ -20,6 +20,7 @@ from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.image import dilate
+from gs_regional.utils.sh import sh_to_rgb
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems import parallel
@@ -145,6 +146,13 @@ class RefineConfig:
     # that rim learned the bleed, which costs the unedited surroundings ~15 dB (docs/method.md).
     # 0 lets every selected Gaussian train.
     min_edit_blend: float = 0.5
+    # ... and one recoloured by less than this whose source colour lies well outside the colours
+    # of the selected Gaussians recoloured by more (gs_regional.edit.composite.distinct_parts) is
+    # a part of its own and keeps its source colours too: the editor spills about half of its
+    # colour onto a small part enclosed by the edited one (the figure's eyes in its head), as
+    # much as the edited part's own edge takes, but the edge shares the part's colours
+    # (metrics.json `count_recolour_distinct`; docs/method.md). 0 switches it off.
+    distinct_part_blend: float = 0.85
     # A recolour (depth initialization trusted, no change of shape) trains only colours, at this
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
     # colours far in a few hundred. Not used when the shape may change (docs/method.md).
@@ -235,6 +243,7 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
              r.min_recoloured_fraction)
         need(0 <= r.min_edit_blend <= 1, "refine.min_edit_blend", "a number in [0, 1]", r.min_edit_blend)
+        need(0 <= r.distinct_part_blend <= 1, "refine.distinct_part_blend", "a number in [0, 1]", r.distinct_part_blend)
         need(0 <= r.composite_min_blend <= 1, "refine.composite_min_blend", "a number in [0, 1]", r.composite_min_blend)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
@@ -691,6 +700,12 @@ class RegionalEdit(EditSystemBase):
         src = g.source_index
         selected = (src >= 0) & self.source_selection.to(self.device)[src.clamp_min(0)]
         takes = selected & ((den < SEEN_MIN_WEIGHT) | (num >= r.min_edit_blend * den))
+        if r.distinct_part_blend > 0:
+            colours = sh_to_rgb(self.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
+            blend = num / den.clamp_min(1e-12)
+            distinct = distinct_parts(colours, blend, selected & (den >= SEEN_MIN_WEIGHT), r.distinct_part_blend)
+            takes &= ~distinct
+            self.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, self.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, self.optimizers())
         g.mask.copy_(takes)
         self.counts["recolour_declined"] = int((selected & ~takes).sum())
