@@ -468,8 +468,8 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     alone cannot decline the eyes without the edge. Known answer: a head whose shading is baked
     into its colours (the edge, seen less and lit less, darker on average than the fully
     recoloured front, as in the demo's recolour), dark eyes and a neighbour part of another
-    colour, both at the edge's blend: exactly the eyes and the neighbour are distinct, and a part with only a few fully recoloured Gaussians keeps its
-    slightly different ones (`min_distance`)."""
+    colour, both at the edge's blend: exactly the eyes and the neighbour are distinct. A part with
+    only a few fully recoloured Gaussians keeps its slightly different ones (`min_distance`)."""
     from gs_regional.edit.composite import distinct_parts
 
     gen = torch.Generator().manual_seed(0)
