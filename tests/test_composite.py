@@ -468,8 +468,9 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     alone cannot decline the eyes without the edge. Known answer: a head whose shading is baked
     into its colours (the edge, seen less and lit less, darker on average than the fully
     recoloured front, as in the demo's recolour), dark eyes and a neighbour part of another
-    colour, both at the edge's blend: exactly the eyes and the neighbour are distinct. A part with
-    only a few fully recoloured Gaussians keeps its slightly different ones (`min_distance`)."""
+    colour, both at the edge's blend: exactly the eyes and the neighbour are distinct. A part
+    recoloured fully in one shade keeps its Gaussians a shade apart (`min_distance`), and a small
+    part with few fully recoloured Gaussians keeps all of its own (`min_core_fraction`)."""
     from gs_regional.edit.composite import distinct_parts
 
     gen = torch.Generator().manual_seed(0)
@@ -486,10 +487,17 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     assert distinct[500:].all() and not distinct[:500].any(), (int(distinct[:500].sum()), int(distinct[500:].sum()))
     assert not distinct_parts(colours, blend, torch.cat([seen[:500], torch.zeros(50, dtype=torch.bool)]), 0.85)[500:].any()
 
-    # A small textured patch: 5 fully recoloured Gaussians of one shade, the rest a shade apart.
-    patch = torch.cat([torch.full((5, 3), 0.3), torch.full((40, 3), 0.3) + torch.tensor([0.1, 0.05, 0.0])])
-    patch_blend = torch.cat([torch.full((5,), 0.9), torch.full((40,), 0.6)])
-    assert not distinct_parts(patch, patch_blend, torch.ones(45, dtype=torch.bool), 0.85).any()
+    # A part whose fully recoloured Gaussians are all of one shade keeps those a shade apart.
+    patch = torch.cat([torch.full((30, 3), 0.3), torch.full((40, 3), 0.3) + torch.tensor([0.1, 0.05, 0.0])])
+    patch_blend = torch.cat([torch.full((30,), 0.9), torch.full((40,), 0.6)])
+    every = torch.ones(70, dtype=torch.bool)
+    assert not distinct_parts(patch, patch_blend, every, 0.85).any()
+    assert distinct_parts(patch, patch_blend, every, 0.85, min_distance=0.0)[30:].all()  # the floor decides
+    # A small patch, mostly edge: 5 of its 45 recoloured fully are too few to stand for its colours.
+    small = torch.cat([torch.full((5, 3), 0.3), torch.full((40, 3), 0.7)])
+    small_blend = torch.cat([torch.full((5,), 0.9), torch.full((40,), 0.6)])
+    assert not distinct_parts(small, small_blend, torch.ones(45, dtype=torch.bool), 0.85).any()
+    assert distinct_parts(small, small_blend, torch.ones(45, dtype=torch.bool), 0.85, min_core_fraction=0.1)[5:].all()
 
 
 def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path):

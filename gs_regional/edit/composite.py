@@ -175,18 +175,21 @@ def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_
 
 
 def distinct_parts(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor, full_blend: float,
-                   quantile: float = 0.95, margin: float = 1.5, min_distance: float = 0.25) -> torch.Tensor:
+                   quantile: float = 0.95, margin: float = 1.5, min_distance: float = 0.25,
+                   min_core_fraction: float = 0.2) -> torch.Tensor:
     """(N,) bool: Gaussians of a recolour's selection that are a part of their own, not the part
     being recoloured: seen, recoloured by less than `full_blend` (`blend`: mean edit_blend over
     their views), and further in source colour (`colours`, (N, 3)) from the median colour of the
     Gaussians the edit recolours fully (blend >= full_blend) than `margin` times the distance
-    `quantile` of those stay within, and at least `min_distance` (RGB in [0, 1]) from it.
+    `quantile` of those stay within, and at least `min_distance` (RGB in [0, 1]) from it. None
+    unless the fully recoloured Gaussians are at least `min_core_fraction` of the seen ones: a
+    small part, mostly edge, has too few of them to stand for its colours.
 
     The editor spills about half of its colour onto a small part enclosed by the edited one (eyes
     in a head), which is as much as the edited part's own edge takes; the edge shares the part's
     colours, the enclosed part does not."""
     core = seen & (blend >= full_blend)
-    if int(core.sum()) < 2:
+    if int(core.sum()) < max(2.0, min_core_fraction * int(seen.sum())):
         return torch.zeros_like(seen)
     centre = column_quantile(colours[core], 0.5)
     distance = (colours - centre).norm(dim=-1)
