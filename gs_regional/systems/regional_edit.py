@@ -684,8 +684,9 @@ class RegionalEdit(EditSystemBase):
     @torch.no_grad()
     def gate_recolour(self) -> None:
         """A recolour: the selected Gaussians that the edited views so far do not recolour
-        (`refine.min_edit_blend`) go back to their source colours and stop training; one whose
-        views later recolour it trains again. One gather per edited view (the cost of a render)."""
+        (`refine.min_edit_blend`), or that are a part of their own (`refine.distinct_part_blend`),
+        go back to their source colours and stop training; one whose views later recolour it trains
+        again. One gather per edited view (the cost of a render)."""
         r, g = self.cfg.refine, self.geometry
         if r.min_edit_blend <= 0 or self.shape_may_change or r.optimize_all or not self.cfg.localize:
             return
@@ -699,17 +700,17 @@ class RegionalEdit(EditSystemBase):
         num, den = self.blend_votes
         src = g.source_index
         selected = (src >= 0) & self.source_selection.to(self.device)[src.clamp_min(0)]
-        takes = selected & ((den < SEEN_MIN_WEIGHT) | (num >= r.min_edit_blend * den))
+        seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
+        takes = (selected & ~seen) | (seen & (num >= r.min_edit_blend * den))
         if r.distinct_part_blend > 0:
             colours = sh_to_rgb(self.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
-            blend = num / den.clamp_min(1e-12)
-            distinct = distinct_parts(colours, blend, selected & (den >= SEEN_MIN_WEIGHT), r.distinct_part_blend)
+            distinct = distinct_parts(colours, num / den.clamp_min(1e-12), seen, r.distinct_part_blend)
             takes &= ~distinct
             self.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, self.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, self.optimizers())
         g.mask.copy_(takes)
         self.counts["recolour_declined"] = int((selected & ~takes).sum())
-        self.counts["recolour_taken"] = int((selected & (den >= SEEN_MIN_WEIGHT) & takes).sum())  # seen and recoloured
+        self.counts["recolour_taken"] = int((seen & takes).sum())
 
     def view_seed(self, cycle: int, index: int) -> int:
         """The editor's seed for view `index` in refinement cycle `cycle`."""
