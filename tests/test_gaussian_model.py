@@ -140,6 +140,40 @@ def test_prune_and_append_keep_parameters_and_fix_adam_state():
         rows.append(m, make_model(2, degree=0))
 
 
+def test_a_graph_kept_alive_across_a_row_change_does_not_break_the_next_backward():
+    """A render (or any output) someone keeps holds the parameters' gradient accumulators, which
+    recorded the old number of rows; after keep, append, duplicate or a state-dict resize the next
+    backward must still work and give gradients of the new shape (seen on an H200: an edit whose
+    depth step appended Gaussians failed its first refinement step)."""
+    m = make_model(12)
+    m.set_trainable_mask(torch.ones(12, dtype=torch.bool))  # the gradient hooks must survive too
+    opt = make_adam(m)
+    kept = []
+
+    def step():
+        out = m.sh[:, None] * m.means.sum(-1)[:, None, None, None]  # an unsqueeze, like a renderer's
+        kept.append(out)
+        opt.zero_grad()
+        (out.sum() + full_loss(m)).backward()
+        opt.step()
+        assert all(getattr(m, n).grad.shape == getattr(m, n).shape for n in PARAM_NAMES)
+
+    step()
+    rows.keep(m, torch.arange(12) % 4 != 0, optimizer=opt)
+    m.set_trainable_mask(torch.ones(9, dtype=torch.bool))
+    step()
+    other = make_model(3, seed=4)
+    rows.append(m, {n: getattr(other, n).detach() for n in PARAM_NAMES}, optimizer=opt, trainable=True)
+    step()
+    rows.duplicate(m, torch.tensor([0, 1]), optimizer=opt)
+    step()
+    assert len(m) == 14
+    m.load_state_dict(copy.deepcopy(make_model(5, seed=6).state_dict()))
+    opt = make_adam(m)
+    step()
+    check_optimizer_state(m, opt)
+
+
 def _densify_setup():
     """12 Gaussians: 0-1 small & high gradient (clone), 2-3 large & high gradient (split),
     4 faint (prune), the rest quiet."""

@@ -495,6 +495,23 @@ def test_mirror_grad_exposes_per_camera_slice_gradient():
     torch.testing.assert_close(view.grad, torch.full((5, 2), 2.0))
 
 
+def test_mirror_grad_lets_a_render_and_its_graph_go():
+    """A render's graph must die with the render: if the hook held the view, the cycle through the
+    autograd graph would keep every gsplat render's graph (and the parameters' gradient
+    accumulators in it) alive. Found on an H200: a later change of the number of Gaussians then
+    broke the next backward."""
+    import gc
+    import weakref
+
+    p = torch.randn(5, 2, requires_grad=True)
+    batched = (p * 3.0)[None]
+    view = gsplat_mod.mirror_grad(batched)
+    gone = weakref.ref(view)
+    del view, batched
+    gc.collect()
+    assert gone() is None
+
+
 @pytest.mark.skipif(
     not gsplat_mod.gsplat_available(), reason="gsplat-vs-torch agreement needs gsplat and a CUDA GPU"
 )

@@ -13,8 +13,8 @@ rows, densification statistics, extra PLY properties), one row per Gaussian.
 Changing the number or order of rows is the job of `gs_regional.geometry.rows` (keep, append,
 duplicate), which updates every parameter, every buffer of `ROW_STATE` and the optimizer's per-row
 state together; `gs_regional.geometry.strategy.DensifyStrategy` decides what to clone, split and
-prune. Parameters are resized through `param.data`, so the nn.Parameter objects never change and an
-optimizer built on them stays valid.
+prune. Parameters are resized through `param.data` (`set_parameter_rows`), so the nn.Parameter
+objects never change and an optimizer built on them stays valid.
 """
 from __future__ import annotations
 
@@ -38,6 +38,21 @@ from gs_regional.utils.sh import rgb_to_sh
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 EDITABLE = "editable"  # trainable-row rule: mask | generation > 0, evaluated at backward time
 _ROWS = "rows"  # trainable-row rule: the `trainable` buffer
+
+
+def set_parameter_rows(param: nn.Parameter, data: torch.Tensor) -> None:
+    """Give `param` new data with another number of rows, keeping the Parameter object.
+
+    Assigning `.data` keeps the parameter's gradient accumulator (the autograd node that sums its
+    gradient), which recorded the old shape; while any graph that reaches it is still alive (a
+    render someone kept), the next backward then fails with "invalid gradient ... expected shape
+    compatible with [N_old, ...]". PyTorch drops that node only when the dtype or device changes,
+    so an empty tensor of another dtype goes in first; hooks registered on the tensor stay.
+    """
+    other = torch.float64 if data.dtype != torch.float64 else torch.float32
+    param.data = torch.empty(0, dtype=other, device=data.device)
+    param.data = data
+    param.grad = None
 
 
 @dataclass(frozen=True)
@@ -198,8 +213,7 @@ class GaussianModel(BaseModule):
         n, dev = means.shape[0], means.device
         for name in PARAM_NAMES:
             p = getattr(self, name)
-            p.data = params[name].detach().to(device=dev, dtype=p.dtype).clone()
-            p.grad = None
+            set_parameter_rows(p, params[name].detach().to(device=dev, dtype=p.dtype).clone())
         self.sh_degree = _degree_from_rest(self.sh_rest.shape[1])
         if state.get("source_index") is None:
             state["source_index"] = torch.arange(n, device=dev)
@@ -534,8 +548,7 @@ class GaussianModel(BaseModule):
                 continue
             fresh = torch.zeros(shape, dtype=current.dtype, device=current.device)
             if isinstance(current, nn.Parameter):
-                current.data = fresh
-                current.grad = None
+                set_parameter_rows(current, fresh)
             else:
                 setattr(self, name, fresh)
         try:

@@ -21,7 +21,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Union
 import torch
 import torch.nn as nn
 
-from gs_regional.geometry.gaussian_model import PARAM_NAMES, ROW_STATE, GaussianModel
+from gs_regional.geometry.gaussian_model import PARAM_NAMES, ROW_STATE, GaussianModel, set_parameter_rows
 from gs_regional.utils.rotations import quat_to_rotmat
 
 Optimizers = Union[None, torch.optim.Optimizer, List[torch.optim.Optimizer]]
@@ -66,8 +66,7 @@ def keep(model: GaussianModel, rows: torch.Tensor, optimizer: Optimizers = None)
     for name in PARAM_NAMES:
         p = getattr(model, name)
         _edit_optimizer_rows(optimizer, p, lambda v: v[idx].clone())
-        p.data = p.data[idx].clone()
-        p.grad = None
+        set_parameter_rows(p, p.data[idx].clone())
     for name in ROW_STATE:
         setattr(model, name, getattr(model, name)[idx].clone())
     return removed
@@ -83,8 +82,7 @@ def _append_rows(model: GaussianModel, params: Mapping[str, torch.Tensor], state
         p = getattr(model, name)
         extra = params[name].detach().to(device=dev, dtype=p.dtype)
         _edit_optimizer_rows(optimizer, p, lambda v: torch.cat([v, v.new_zeros((m,) + tuple(v.shape[1:]))], 0))
-        p.data = torch.cat([p.data, extra], 0)
-        p.grad = None
+        set_parameter_rows(p, torch.cat([p.data, extra], 0))
     for name in ROW_STATE:
         old = getattr(model, name)
         setattr(model, name, torch.cat([old, state[name].to(device=old.device, dtype=old.dtype)], 0))

@@ -6,6 +6,7 @@ CUDA GPU, constructing this renderer fails with a message that says so. The pure
 """
 from __future__ import annotations
 
+import weakref
 from typing import Dict, Optional
 
 import torch
@@ -37,14 +38,21 @@ def mirror_grad(src: torch.Tensor, index: int = 0) -> torch.Tensor:
     """`src[index]` as a tensor whose `.grad` receives src's gradient slice after backward.
 
     gsplat's means2d is (C, N, 2) and is what its kernels consume, so a plain view `src[0]` would
-    never get a gradient (it is not on the path to the loss). A hook copies the slice over.
+    never get a gradient (it is not on the path to the loss). A hook copies the slice over. The hook
+    holds the view weakly: a strong reference would close a cycle through the autograd graph
+    (src's node -> hook -> view -> view's node -> src's node) that Python's collector cannot see,
+    so every render's graph, and the parameters' gradient accumulators in it, would live forever.
     """
     view = src[index]
     if src.requires_grad:
+        view_ref = weakref.ref(view)
 
         def hook(grad: torch.Tensor) -> None:
+            v = view_ref()
+            if v is None:  # the caller let the view go: nobody reads its gradient
+                return
             g = grad[index].detach()
-            view.grad = g.clone() if view.grad is None else view.grad + g
+            v.grad = g.clone() if v.grad is None else v.grad + g
 
         view.retain_grad()
         src.register_hook(hook)
