@@ -164,3 +164,29 @@ def test_renderer_checks_background_and_override_color():
         r.render(model, _cam(), override_color=torch.ones(3, 2))
     with pytest.raises(ValueError, match="renderer.tile_size must be >= 1"):
         EchoRenderer({"tile_size": 0})
+
+
+class MapEditor(Guidance):
+    """A plugin whose relevance is a fixed map (the same for every image)."""
+
+    relevance_map = None
+
+    def _relevance(self, images, prompt, timestep, samples, seeds, cameras):
+        return self.relevance_map.expand(images.shape[0], -1, -1).clone()
+
+
+def test_mask_removes_specks_but_keeps_a_small_part_that_is_the_strongest_response():
+    """The speck filter (σ = 2 px) erases any blob under about 17 px; a part that small in a view
+    must survive when it is where the editor responds most, while weaker specks still go."""
+    rel = torch.zeros(32, 32)
+    rel[5:8, 5:8] = 1.0  # the part: 3 x 3 px, the strongest response
+    rel[20, 20] = 0.8  # a speck of noise above the threshold
+    rel[14:30, 24:30] = 0.7  # a large blob (a related part), kept by the filter as before
+    MapEditor.relevance_map = rel
+    m = MapEditor().mask(torch.rand(2, 32, 32, 3), "paint a patch", threshold=0.6, blur_sigma=2.0)[0].bool()
+    assert m[5:8, 5:8].all() and int(m[:10, :10].sum()) == 9  # the part, whole and no more
+    assert not m[20, 20] and m[20:26, 25:29].all()
+    rel[5:8, 5:8] = 0.65  # the part is no longer the strongest response: a speck like any other
+    rel[16:30, 24:30] = 1.0
+    m = MapEditor().mask(torch.rand(1, 32, 32, 3), "paint a patch", threshold=0.6, blur_sigma=2.0)[0].bool()
+    assert not m[:10, :10].any()

@@ -7,7 +7,7 @@ import torch
 
 from gs_regional.edit.initialize import match_colors
 from gs_regional.geometry.neighbors import column_quantile
-from gs_regional.utils.image import dilate, gaussian_blur
+from gs_regional.utils.image import components, dilate, gaussian_blur
 
 
 # A regenerated view's tone drifts by a few percent; a larger gain fitted on the calm pixels comes
@@ -86,24 +86,6 @@ def recoloured_fraction(
         return None
     changed, _, _ = real_change(edited, source, calm, noise_sigmas)
     return float((changed[rest] >= 0.5).float().mean())
-
-
-def components(mask: torch.Tensor) -> torch.Tensor:
-    """(H, W) int64 labels of the 8-connected components of `mask` (-1 outside it): each pixel
-    ends with the largest pixel index of its component. Each pass takes the largest label among
-    the 8 neighbours, then jumps to the label of the pixel its label names (that pixel lies in
-    the same component and its label is at least as large), so a long thin blob takes about
-    log2 of its length in passes instead of its length."""
-    h, w = mask.shape
-    inside = mask.reshape(-1)
-    labels = torch.where(inside, torch.arange(h * w, device=mask.device), torch.full_like(inside, -1, dtype=torch.long))
-    while True:
-        pooled = torch.nn.functional.max_pool2d(labels.reshape(1, 1, h, w).double(), 3, 1, 1).reshape(-1).long()
-        grown = torch.where(inside, torch.maximum(labels, pooled), labels)
-        grown = torch.where(inside, grown[grown.clamp_min(0)], grown)
-        if bool((grown == labels).all()):
-            return labels.reshape(h, w)
-        labels = grown
 
 
 def edit_change(
