@@ -157,6 +157,12 @@ class RefineConfig:
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
     # colours far in a few hundred. Not used when the shape may change (docs/method.md).
     recolour_lr_scale: float = 6.0
+    # An edit that may change the shape moves the Gaussians it added (while the source's keep their
+    # place: "means" in `source_fixed`) at this multiple of the position learning rate.
+    # The new object is placed from one view's depth and that view's edit, which the editor puts a
+    # pixel or two off; 3DGS's rate, made for 30k steps, moves it less than that in a cycle's tens
+    # of steps, so it kept the first view's offset (docs/method.md). 1 keeps 3DGS's rate.
+    added_position_lr_scale: float = 3.0
     # After the last cycle, Gaussians the edit added (from depth or by densification) that
     # contribute nothing are removed: total rendered weight over the training views below
     # `prune_min_weight` (in pixels) or opacity below `prune_min_opacity`.
@@ -240,6 +246,7 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.composite_full_coverage <= 1, "refine.composite_full_coverage", "a fraction in [0, 1]",
              r.composite_full_coverage)
         need(r.recolour_lr_scale >= 0, "refine.recolour_lr_scale", "a number >= 0", r.recolour_lr_scale)
+        need(r.added_position_lr_scale >= 0, "refine.added_position_lr_scale", "a number >= 0", r.added_position_lr_scale)
         need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
              r.min_recoloured_fraction)
         need(0 <= r.min_edit_blend <= 1, "refine.min_edit_blend", "a number in [0, 1]", r.min_edit_blend)
@@ -630,6 +637,11 @@ class RegionalEdit(EditSystemBase):
         fixed = [*self.cfg.refine.source_fixed, *(SHAPE_FREE_PARAMS if self.adds_only else ())]
         if not self.cfg.refine.optimize_all and self.shape_may_change and fixed:
             g.set_added_only(fixed)
+        if not self.cfg.refine.optimize_all and self.shape_may_change and "means" in fixed:
+            # Only the added rows move (the source's are fixed), so only they get the faster rate.
+            for group in self.optimizers().optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] *= self.cfg.refine.added_position_lr_scale
         if not self.cfg.refine.optimize_all and not self.shape_may_change:
             # A recolour: the region's Gaussians keep their shape and opacity, only their colours
             # train (left free, they grow and move into the unedited surroundings).
