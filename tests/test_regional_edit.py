@@ -546,4 +546,3 @@ def test_longer_refinement_densifies_no_more_often(tmp_path):
     assert doubled["count_densified"] <= 1.5 * base["count_densified"], (base["count_densified"], doubled["count_densified"])
     assert old["count_densified"] >= 2 * base["count_densified"]
     assert doubled["psnr_outside_vs_true_edit"] >= base["psnr_outside_vs_true_edit"] - 0.3
-

@@ -631,22 +631,26 @@ class RegionalEdit(EditSystemBase):
         return MIN_JUDGED_CHANGE * cam.width * cam.height
 
     def set_trainable(self) -> None:
-        g = self.geometry
+        g, r = self.geometry, self.cfg.refine
         # "editable" = mask | generation > 0, re-evaluated at every backward pass.
-        g.set_trainable_mask(None if self.cfg.refine.optimize_all else "editable")
-        fixed = [*self.cfg.refine.source_fixed, *(SHAPE_FREE_PARAMS if self.adds_only else ())]
-        if not self.cfg.refine.optimize_all and self.shape_may_change and fixed:
-            g.set_added_only(fixed)
-        if not self.cfg.refine.optimize_all and self.shape_may_change and "means" in fixed:
-            # Only the added rows move (the source's are fixed), so only they get the faster rate.
-            for group in self.optimizers().optimizer.param_groups:
-                if group["name"] == "means":
-                    group["lr"] *= self.cfg.refine.added_position_lr_scale
-        if not self.cfg.refine.optimize_all and not self.shape_may_change:
+        g.set_trainable_mask(None if r.optimize_all else "editable")
+        if r.optimize_all:
+            return
+        groups = self.optimizers().optimizer.param_groups
+        if self.shape_may_change:
+            fixed = [*r.source_fixed, *(SHAPE_FREE_PARAMS if self.adds_only else ())]
+            if fixed:
+                g.set_added_only(fixed)
+            if "means" in fixed:
+                # Only the added rows move (the source's are fixed), so only they get the faster rate.
+                for group in groups:
+                    if group["name"] == "means":
+                        group["lr"] *= r.added_position_lr_scale
+        else:
             # A recolour: the region's Gaussians keep their shape and opacity, only their colours
             # train (left free, they grow and move into the unedited surroundings).
-            for group in self.optimizers().optimizer.param_groups:
-                group["lr"] *= self.cfg.refine.recolour_lr_scale if group["name"] in SHAPE_FREE_PARAMS else 0.0
+            for group in groups:
+                group["lr"] *= r.recolour_lr_scale if group["name"] in SHAPE_FREE_PARAMS else 0.0
 
     # ----- stage 3 -------------------------------------------------------------------------------
     @torch.no_grad()
