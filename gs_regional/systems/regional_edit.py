@@ -20,7 +20,7 @@ from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.utils.image import dilate
-from gs_regional.utils.sh import sh_to_rgb
+from gs_regional.utils.sh import SH_C0, sh_to_rgb
 from gs_regional.utils.visualize import overlay_mask
 from gs_regional.registry import find, register
 from gs_regional.systems import parallel
@@ -163,6 +163,13 @@ class RefineConfig:
     # pixel or two off; 3DGS's rate, made for 30k steps, moves it less than that in a cycle's tens
     # of steps, so it kept the first view's offset (docs/method.md). 1 keeps 3DGS's rate.
     added_position_lr_scale: float = 3.0
+    # A recolour's selected Gaussians start from the colours of the first cycle's edited views:
+    # each one the gate lets take the edit moves its base colour by the rendering-weighted mean,
+    # over its pixels in those views, of the edited view minus the source render. 3DGS's colour
+    # rate, even at `recolour_lr_scale`, carries a colour that far only in about as many steps as
+    # a short refinement has, so the colours arrived late and dull (docs/method.md). Training then
+    # refines them. False: they start at the source's.
+    recolour_from_edits: bool = True
     # After the last cycle, Gaussians the edit added (from depth or by densification) that
     # contribute nothing are removed: total rendered weight over the training views below
     # `prune_min_weight` (in pixels) or opacity below `prune_min_opacity`.
@@ -695,6 +702,8 @@ class RegionalEdit(EditSystemBase):
         shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
         self.gate_recolour()
+        if cycle == 0:
+            self.recolour_from_edits()
         self.add_time("refine_edit", time.perf_counter() - t0)
 
     @torch.no_grad()
@@ -727,6 +736,25 @@ class RegionalEdit(EditSystemBase):
         g.mask.copy_(takes)
         self.counts["recolour_declined"] = int((selected & ~takes).sum())
         self.counts["recolour_taken"] = int((seen & takes).sum())
+
+    @torch.no_grad()
+    def recolour_from_edits(self) -> None:
+        """A recolour (`refine.recolour_from_edits`): move each editable Gaussian's base colour (SH
+        degree 0) by the rendering-weighted mean of (target - source render) over its pixels in
+        this cycle's views, which edit the source scene (the first cycle). Where a pixel's
+        Gaussians all move so, the pixel's colour moves by the same amount times its opacity.
+        One gather per view (the cost of a render)."""
+        r, g = self.cfg.refine, self.geometry
+        if not r.recolour_from_edits or self.shape_may_change or r.optimize_all or not self.cfg.localize:
+            return
+        sums = torch.zeros(g.num_gaussians, 4, device=self.device)
+        for k, j in enumerate(self.cycle_views):
+            change = self.cycle_targets[k].to(self.device) - self.source_renders[j].to(self.device)
+            weights = self.renderer.pixel_weights(g, self.scene.cameras[j].to(self.device))
+            sums += weights.gather(torch.cat([change, torch.ones_like(change[..., :1])], -1))
+        moves = g.mask & (g.source_index >= 0) & (sums[:, 3] >= SEEN_MIN_WEIGHT)
+        g.sh_dc.data[moves] += sums[moves, :3] / sums[moves, 3:] / SH_C0
+        self.counts["recolour_started"] = int(moves.sum())
 
     def view_seed(self, cycle: int, index: int) -> int:
         """The editor's seed for view `index` in refinement cycle `cycle`."""
