@@ -469,18 +469,19 @@ def test_a_short_recolour_reaches_the_edits_colours(tmp_path):
     """3DGS's colour rate, even scaled up, carries a colour across the range in about as many
     steps as a short refinement has, so a recolour's colours arrived late and dull (truth suite:
     doubling the steps added 3 dB). Known answer: the demo's head turned red, the true region as
-    the selection, 3 cycles x 4 steps: with the colours started from the first cycle's edited
-    views the footprint is far closer to the true edit than with the colours started at the
-    source's (20.3 against 10.7 dB when written), and the rest of the scene does not pay for it."""
+    the selection, 3 cycles x 4 steps: with the colours of the Gaussians those views recolour
+    fully started from the first cycle's edited views, the footprint is far closer to the true
+    edit than with every colour started at the source's (16.0 against 10.7 dB when written), and
+    the rest of the scene does not pay for it."""
     from test_reliability import launch, metrics, trial
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.localize_with_truth=true")
     assert launch(tmp_path, "started", *recolour) == 0
     assert launch(tmp_path, "source", *recolour, "system.refine.recolour_from_edits=false") == 0
     started, source = metrics(trial(tmp_path, "started")), metrics(trial(tmp_path, "source"))
-    assert started["count_recolour_started"] > 0.5 * started["count_recolour_taken"], started
+    assert 0.25 * started["count_recolour_taken"] < started["count_recolour_started"] < started["count_recolour_taken"]
     assert "count_recolour_started" not in source
-    assert started["psnr_region_vs_true_edit"] > source["psnr_region_vs_true_edit"] + 5.0, (started, source)
+    assert started["psnr_region_vs_true_edit"] > source["psnr_region_vs_true_edit"] + 3.0, (started, source)
     assert started["psnr_outside_vs_true_edit"] > source["psnr_outside_vs_true_edit"] - 1.0, (started, source)
     assert started["gaussians_added"] == 0 and started["psnr_unedited"] >= 50.0
 

@@ -164,12 +164,17 @@ class RefineConfig:
     # of steps, so it kept the first view's offset (docs/method.md). 1 keeps 3DGS's rate.
     added_position_lr_scale: float = 3.0
     # A recolour's selected Gaussians start from the colours of the first cycle's edited views:
-    # each one the gate lets take the edit moves its base colour by the rendering-weighted mean,
-    # over its pixels in those views, of the edited view minus the source render. 3DGS's colour
-    # rate, even at `recolour_lr_scale`, carries a colour that far only in about as many steps as
-    # a short refinement has, so the colours arrived late and dull (docs/method.md). Training then
-    # refines them. False: they start at the source's.
+    # each one the gate lets take the edit (see the next key) moves its base colour by the
+    # rendering-weighted mean, over its pixels in those views, of the edited view minus the source
+    # render. 3DGS's colour rate, even at `recolour_lr_scale`, carries a colour that far only in
+    # about as many steps as a short refinement has, so the colours arrived late and dull
+    # (docs/method.md). Training then refines them. False: they start at the source's.
     recolour_from_edits: bool = True
+    # ... only those the edited views recolour fully: the gate's rendering-weighted mean
+    # `edit_blend` reaches this. The rim the gate lets through (0.5 up) takes the editor's spill at
+    # once when started too, and cost up to 7.8 dB outside the true footprint; left to train from
+    # its source colours it lags as before (docs/method.md). 0 starts every one the gate lets take it.
+    recolour_start_min_blend: float = 0.85
     # After the last cycle, Gaussians the edit added (from depth or by densification) that
     # contribute nothing are removed: total rendered weight over the training views below
     # `prune_min_weight` (in pixels) or opacity below `prune_min_opacity`.
@@ -253,6 +258,8 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.composite_full_coverage <= 1, "refine.composite_full_coverage", "a fraction in [0, 1]",
              r.composite_full_coverage)
         need(r.recolour_lr_scale >= 0, "refine.recolour_lr_scale", "a number >= 0", r.recolour_lr_scale)
+        need(0 <= r.recolour_start_min_blend <= 1, "refine.recolour_start_min_blend", "a number in [0, 1]",
+             r.recolour_start_min_blend)
         need(r.added_position_lr_scale >= 0, "refine.added_position_lr_scale", "a number >= 0", r.added_position_lr_scale)
         need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
              r.min_recoloured_fraction)
@@ -739,11 +746,12 @@ class RegionalEdit(EditSystemBase):
 
     @torch.no_grad()
     def recolour_from_edits(self) -> None:
-        """A recolour (`refine.recolour_from_edits`): move each editable Gaussian's base colour (SH
-        degree 0) by the rendering-weighted mean of (target - source render) over its pixels in
-        this cycle's views, which edit the source scene (the first cycle). Where a pixel's
-        Gaussians all move so, the pixel's colour moves by the same amount times its opacity.
-        One gather per view (the cost of a render)."""
+        """A recolour (`refine.recolour_from_edits`): move the base colour (SH degree 0) of each
+        editable Gaussian that this cycle's views recolour fully (`recolour_start_min_blend`) by
+        the rendering-weighted mean of (target - source render) over its pixels in those views,
+        which edit the source scene (the first cycle). Where a pixel's Gaussians all move so, the
+        pixel's colour moves by the same amount times its opacity. One gather per view (the cost
+        of a render)."""
         r, g = self.cfg.refine, self.geometry
         if not r.recolour_from_edits or self.shape_may_change or r.optimize_all or not self.cfg.localize:
             return
@@ -753,6 +761,9 @@ class RegionalEdit(EditSystemBase):
             weights = self.renderer.pixel_weights(g, self.scene.cameras[j].to(self.device))
             sums += weights.gather(torch.cat([change, torch.ones_like(change[..., :1])], -1))
         moves = g.mask & (g.source_index >= 0) & (sums[:, 3] >= SEEN_MIN_WEIGHT)
+        if self.blend_votes is not None:  # the gate ran: the rim it let through trains from the source
+            num, den = self.blend_votes
+            moves &= num >= r.recolour_start_min_blend * den
         g.sh_dc.data[moves] += sums[moves, :3] / sums[moves, 3:] / SH_C0
         self.counts["recolour_started"] = int(moves.sum())
 
