@@ -432,9 +432,8 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
 
     monkeypatch.setattr(regional_edit.RegionalEdit, "run_localize", with_rim)
     monkeypatch.setattr(regional_edit.RegionalEdit, "gate_recolour", recorded)
-    # The gate on its own: started from the edited views' colours (recolour_from_edits, its own
-    # test below), the free rim's silhouette pixels come out 1.6 dB closer in the footprint at this
-    # budget, and the gate's +2 dB outside holds either way.
+    # The gate on its own (with recolour_from_edits, tested below, the free rim's silhouette
+    # pixels come out 1.6 dB closer in the footprint at this budget; the gate's +2 dB outside holds).
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.localize_with_truth=true",
                 "system.refine.iterations_per_cycle=20", "system.refine.recolour_from_edits=false")
     assert launch(tmp_path, "gated", *recolour) == 0
@@ -476,8 +475,8 @@ def test_a_short_recolour_reaches_the_edits_colours(tmp_path):
     from test_reliability import launch, metrics, trial
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.localize_with_truth=true")
-    assert launch(tmp_path, "started", *recolour) == 0
-    assert launch(tmp_path, "source", *recolour, "system.refine.recolour_from_edits=false") == 0
+    assert launch(tmp_path, "started", *recolour, "system.refine.recolour_from_edits=true") == 0
+    assert launch(tmp_path, "source", *recolour) == 0  # the default: colours start at the source's
     started, source = metrics(trial(tmp_path, "started")), metrics(trial(tmp_path, "source"))
     assert 0.25 * started["count_recolour_taken"] < started["count_recolour_started"] < started["count_recolour_taken"]
     assert "count_recolour_started" not in source

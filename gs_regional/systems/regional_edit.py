@@ -168,8 +168,11 @@ class RefineConfig:
     # rendering-weighted mean, over its pixels in those views, of the edited view minus the source
     # render. 3DGS's colour rate, even at `recolour_lr_scale`, carries a colour that far only in
     # about as many steps as a short refinement has, so the colours arrived late and dull
-    # (docs/method.md). Training then refines them. False: they start at the source's.
-    recolour_from_edits: bool = True
+    # (docs/method.md). Training then refines them. Off by default: it gains 1-2 dB of median
+    # gain on the truth suite's recolours, but on the demo's head the eyes it encloses then take
+    # the edit (the later views' targets, made from redder renders, recolour them past the
+    # distinct-part rule) and a longer refinement loses more outside the true footprint.
+    recolour_from_edits: bool = False
     # ... only those the edited views recolour fully: the gate's rendering-weighted mean
     # `edit_blend` reaches this. The rim the gate lets through (0.5 up) takes the editor's spill at
     # once when started too, and cost up to 7.8 dB outside the true footprint; left to train from
