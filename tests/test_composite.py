@@ -423,8 +423,8 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
         self.source_selection = rows.source_rows(g, truth | rim, self.n_source)
         seen.update(truth=truth.cpu(), rim=rim.cpu())
 
-    def recorded(self):
-        gate(self)
+    def recorded(self, weights):
+        gate(self, weights)
         if self.blend_votes is None:  # the gate is off
             return
         seen["mask"] = self.geometry.mask.cpu().clone()

@@ -19,6 +19,7 @@ from gs_regional.edit.views import frontier_view, nearest_cameras, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import mask_metrics
+from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import SH_C0, sh_to_rgb
 from gs_regional.utils.visualize import overlay_mask
@@ -711,27 +712,37 @@ class RegionalEdit(EditSystemBase):
         self.edited_views = sorted(set(self.edited_views) | set(views))
         shown = [[self.source_renders[j], self.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
-        self.gate_recolour()
-        if cycle == 0:
-            self.recolour_from_edits()
+        start = cycle == 0 and r.recolour_from_edits
+        if self.gated_recolour and (r.min_edit_blend > 0 or start):
+            # The views' pixel weights, one render each, for the gate and the colour start (the
+            # geometry does not change in between: a recolour trains colours only).
+            weights = [self.renderer.pixel_weights(self.geometry, scene.cameras[j].to(self.device)) for j in views]
+            self.gate_recolour(weights)
+            if start:
+                self.recolour_from_edits(weights)
         self.add_time("refine_edit", time.perf_counter() - t0)
 
+    @property
+    def gated_recolour(self) -> bool:
+        """A recolour of the localized selection only: its Gaussians are judged by the gate
+        (`gate_recolour`) and may start from the edited colours (`recolour_from_edits`)."""
+        return not (self.shape_may_change or self.cfg.refine.optimize_all or not self.cfg.localize)
+
     @torch.no_grad()
-    def gate_recolour(self) -> None:
+    def gate_recolour(self, weights: List[PixelWeights]) -> None:
         """A recolour: the selected Gaussians that the edited views so far do not recolour
         (`refine.min_edit_blend`), or that are a part of their own (`refine.distinct_part_blend`),
         go back to their source colours and stop training; one whose views later recolour it trains
-        again. One gather per edited view (the cost of a render)."""
+        again. `weights`: the pixel weights of this cycle's views. Two gathers per view."""
         r, g = self.cfg.refine, self.geometry
-        if r.min_edit_blend <= 0 or self.shape_may_change or r.optimize_all or not self.cfg.localize:
+        if r.min_edit_blend <= 0:
             return
         if self.blend_votes is None or self.blend_votes.shape[1] != g.num_gaussians:
             self.blend_votes = torch.zeros(2, g.num_gaussians, device=self.device)
-        for k, j in enumerate(self.cycle_views):
+        for k, (j, view) in enumerate(zip(self.cycle_views, weights)):
             blend = edit_blend(self.cycle_targets[k], self.source_renders[j]).clamp(0, 1)
-            weights = self.renderer.pixel_weights(g, self.scene.cameras[j].to(self.device))
-            self.blend_votes[0] += weights.gather(blend)
-            self.blend_votes[1] += weights.gather(torch.ones_like(blend))
+            self.blend_votes[0] += view.gather(blend)
+            self.blend_votes[1] += view.gather(torch.ones_like(blend))
         num, den = self.blend_votes
         src = g.source_index
         selected = (src >= 0) & self.source_selection.to(self.device)[src.clamp_min(0)]
@@ -748,21 +759,18 @@ class RegionalEdit(EditSystemBase):
         self.counts["recolour_taken"] = int((seen & takes).sum())
 
     @torch.no_grad()
-    def recolour_from_edits(self) -> None:
+    def recolour_from_edits(self, weights: List[PixelWeights]) -> None:
         """A recolour (`refine.recolour_from_edits`): move the base colour (SH degree 0) of each
         editable Gaussian that this cycle's views recolour fully (`recolour_start_min_blend`) by
-        the rendering-weighted mean of (target - source render) over its pixels in those views,
-        which edit the source scene (the first cycle). Where a pixel's Gaussians all move so, the
-        pixel's colour moves by the same amount times its opacity. One gather per view (the cost
-        of a render)."""
+        the rendering-weighted mean of (target - source render) over its pixels in those views
+        (`weights`: their pixel weights), which edit the source scene (the first cycle). Where a
+        pixel's Gaussians all move so, the pixel's colour moves by the same amount times its
+        opacity. One gather per view."""
         r, g = self.cfg.refine, self.geometry
-        if not r.recolour_from_edits or self.shape_may_change or r.optimize_all or not self.cfg.localize:
-            return
         sums = torch.zeros(g.num_gaussians, 4, device=self.device)
-        for k, j in enumerate(self.cycle_views):
+        for k, (j, view) in enumerate(zip(self.cycle_views, weights)):
             change = self.cycle_targets[k].to(self.device) - self.source_renders[j].to(self.device)
-            weights = self.renderer.pixel_weights(g, self.scene.cameras[j].to(self.device))
-            sums += weights.gather(torch.cat([change, torch.ones_like(change[..., :1])], -1))
+            sums += view.gather(torch.cat([change, torch.ones_like(change[..., :1])], -1))
         moves = g.mask & (g.source_index >= 0) & (sums[:, 3] >= SEEN_MIN_WEIGHT)
         if self.blend_votes is not None:  # the gate ran: the rim it let through trains from the source
             num, den = self.blend_votes
