@@ -145,31 +145,67 @@ def clearly_changed(changed: int, expected_by_noise: float, region_pixels: int, 
     return changed > max(expected_by_noise + 3 * expected_by_noise ** 0.5 + 1, cfg.min_changed_fraction * region_pixels)
 
 
-def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor,
-                              region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
-    """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
-    two monocular disparities alone, for a view with no pixels to calibrate on (the region fills
-    it): the estimator sees the edited and the unedited image alike, so the edited disparity `de` is
-    mapped onto the unedited one `du` by a robust affine fit over every opaque (`valid`) pixel, which a
-    change of shape covering a minority of them does not move. What is left, in units of the
-    disparity's spread, is noise, except where new geometry came nearer; noise goes both ways, so
-    the pixels that moved *back* by as much say how many nearer ones it explains. The shape changed
-    when the nearer pixels in the region clearly exceed that count and `min_changed_fraction` of
-    the region. The disparities come median-filtered (`cfg.median`). None when there are too few
-    opaque pixels to tell."""
+def disparity_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor, cfg: InitConfig) -> Optional[tuple]:
+    """The change of shape told from two monocular disparities alone (no rendered depth to
+    calibrate on): the estimator sees the edited and the unedited image alike, so the edited
+    disparity `de` is mapped onto the unedited one `du` by a robust affine fit over every opaque
+    (`valid`) pixel, which a change of shape covering a minority of them does not move. Returns
+    ((H, W) what is left, in units of the disparity's spread, > 0 where the edited view is nearer;
+    its noise (a Gaussian's std); the threshold `noise_sigmas` x that), or None when there are too
+    few opaque pixels to tell."""
     if int(valid.sum()) < MIN_UNCALIBRATED_PIXELS:
         return None
     a, b = robust_affine(de, du, valid)
     spread = float((du[valid] - du[valid].median()).abs().mean())
     if not spread > 0:
         return None
-    change = torch.where(valid, (a * de + b - du) / spread, torch.zeros_like(du))  # > 0: nearer
+    change = torch.where(valid, (a * de + b - du) / spread, torch.zeros_like(du))
     noise = 1.4826 * float(change[valid].abs().median())
-    threshold = cfg.noise_sigmas * max(noise, 1e-6)
+    return change, noise, cfg.noise_sigmas * max(noise, 1e-6)
+
+
+def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor,
+                              region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
+    """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
+    two monocular disparities alone (`disparity_change`), for a view with no pixels to calibrate
+    on (the region fills it). Noise goes both ways, so the pixels that moved *back* by as much as
+    the threshold say how many nearer ones it explains. The shape changed when the nearer pixels
+    in the region clearly exceed that count and `min_changed_fraction` of the region. The
+    disparities come median-filtered (`cfg.median`). None when there are too few opaque pixels to
+    tell."""
+    found = disparity_change(du, de, valid, cfg)
+    if found is None:
+        return None
+    change, noise, threshold = found
     nearer = int((changed_pixels(change, threshold) & region).sum())
     farther = int((changed_pixels(-change, threshold) & region).sum())
     return {"nearer_pixels": nearer, "farther_pixels": farther, "noise": round(noise, 5),
             "shape_changed": clearly_changed(nearer, farther, int(region.sum()), cfg)}
+
+
+def unchanged_pixels(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """(H, W) bool: the opaque pixels whose two disparities show no change of shape either way
+    (`disparity_change`), `dilate_px` away from any that do: where the edit left the depth as it
+    was, so the monocular depth can be calibrated there when the region leaves no other pixels."""
+    found = disparity_change(du, de, valid, cfg)
+    if found is None:
+        return torch.zeros_like(valid)
+    change, _, threshold = found
+    moved = changed_pixels(change, threshold) | changed_pixels(-change, threshold)
+    return valid & ~dilate(moved, cfg.dilate_px)
+
+
+def depth_calibration_pixels(alpha_3dgs: torch.Tensor, region: torch.Tensor, disp_unedited: torch.Tensor,
+                             disp_edited: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """(H, W) bool: the pixels `new_gaussians_from_depth` calibrated the monocular depth of a view
+    on (and measured the editor's noise on): `calibration_pixels`, or, when the region leaves too
+    few of them, the opaque pixels the edit leaves unchanged (`unchanged_pixels`). The
+    disparities as the estimator gave them (median-filtered here, as there)."""
+    calib_px = calibration_pixels(alpha_3dgs, region, cfg)
+    if int(calib_px.sum()) >= max(cfg.min_calibration_pixels, 16):
+        return calib_px
+    return unchanged_pixels(median_filter(disp_unedited, cfg.median), median_filter(disp_edited, cfg.median),
+                            alpha_3dgs > cfg.alpha_min, cfg)
 
 
 def _rejected(report: dict, reason: str) -> tuple:
@@ -210,8 +246,16 @@ def new_gaussians_from_depth(
         if change is not None and not change["shape_changed"]:
             report["added"] = 0  # a recolour: trusted, nothing to add (refinement recolours)
             return {}, report, None
-        return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region have a "
-                         f"rendered depth to calibrate on (system.init.min_calibration_pixels={cfg.min_calibration_pixels})")
+        # A change of shape: the depth is calibrated on the opaque pixels, inside the region too,
+        # that the edit leaves as they were (an object added on a part that fills the view, the
+        # donut's icing seen from above, covers a minority of it); without them nothing could
+        # place the object, and densification alone barely drew it.
+        calib_px = unchanged_pixels(disp_unedited, disp_edited, valid, cfg)
+        report["calibration_pixels_unchanged"] = int(calib_px.sum())
+        if report["calibration_pixels_unchanged"] < max(cfg.min_calibration_pixels, 16):
+            return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region, and "
+                             f"{report['calibration_pixels_unchanged']} that the edit leaves unchanged, have a rendered "
+                             f"depth to calibrate on (system.init.min_calibration_pixels={cfg.min_calibration_pixels})")
     # The 3DGS depth behind the region, extended to empty pixels by the farthest rendered depth,
     # so geometry sticking out over the background still gets a reference depth.
     far = float(depth_3dgs.detach()[valid].max())

@@ -10,7 +10,7 @@ import torch
 
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import composite_target, distinct_parts, edit_blend, edit_change, recoloured_fraction
-from gs_regional.edit.initialize import InitConfig, calibration_pixels, new_gaussians_from_depth
+from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
 )
@@ -614,7 +614,8 @@ class RegionalEdit(EditSystemBase):
                     report["recoloured_fraction"] = recoloured_fraction(
                         edited, self.source_renders[v], region_v,
                         render_selection(g, self.renderer, cam, g.generation > 0) > 0.05,
-                        calibration_pixels(self.source_alpha(v), region_v, cfg.init), cfg.refine.composite_noise_sigmas)
+                        depth_calibration_pixels(self.source_alpha(v), region_v, disp[0], disp[1], cfg.init),
+                        cfg.refine.composite_noise_sigmas)
                     if report["recoloured_fraction"] is not None:
                         log.info("initialize: the first edit recolours %.2f of the region beside the added Gaussians "
                                  "(the source keeps its colours below system.refine.min_recoloured_fraction=%s)",
