@@ -168,12 +168,16 @@ def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.T
                               region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
     """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
     two monocular disparities alone (`disparity_change`), for a view with no pixels to calibrate
-    on (the region fills it). Noise goes both ways, so the pixels that moved *back* by as much as
-    the threshold say how many nearer ones it explains. The shape changed when the nearer pixels
-    in the region clearly exceed that count and `min_changed_fraction` of the region. The
-    disparities come median-filtered (`cfg.median`). None when there are too few opaque pixels to
-    tell."""
-    found = disparity_change(du, de, valid, cfg)
+    on (the region fills it). The disparities come median-filtered (`cfg.median`). None when there
+    are too few opaque pixels to tell."""
+    return shape_change_verdict(disparity_change(du, de, valid, cfg), region, cfg)
+
+
+def shape_change_verdict(found: Optional[tuple], region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
+    """`uncalibrated_shape_change` from a `disparity_change` result. Noise goes both ways, so the
+    pixels that moved *back* by as much as the threshold say how many nearer ones it explains. The
+    shape changed when the nearer pixels in the region clearly exceed that count and
+    `min_changed_fraction` of the region."""
     if found is None:
         return None
     change, noise, threshold = found
@@ -183,11 +187,11 @@ def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.T
             "shape_changed": clearly_changed(nearer, farther, int(region.sum()), cfg)}
 
 
-def unchanged_pixels(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
-    """(H, W) bool: the opaque pixels whose two disparities show no change of shape either way
-    (`disparity_change`), `dilate_px` away from any that do: where the edit left the depth as it
-    was, so the monocular depth can be calibrated there when the region leaves no other pixels."""
-    found = disparity_change(du, de, valid, cfg)
+def unchanged_pixels(found: Optional[tuple], valid: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """(H, W) bool: the opaque (`valid`) pixels whose two disparities show no change of shape
+    either way (`found`: a `disparity_change` result), `dilate_px` away from any that do: where the
+    edit left the depth as it was, so the monocular depth can be calibrated there when the region
+    leaves no other pixels."""
     if found is None:
         return torch.zeros_like(valid)
     change, _, threshold = found
@@ -204,8 +208,9 @@ def depth_calibration_pixels(alpha_3dgs: torch.Tensor, region: torch.Tensor, dis
     calib_px = calibration_pixels(alpha_3dgs, region, cfg)
     if int(calib_px.sum()) >= max(cfg.min_calibration_pixels, 16):
         return calib_px
-    return unchanged_pixels(median_filter(disp_unedited, cfg.median), median_filter(disp_edited, cfg.median),
-                            alpha_3dgs > cfg.alpha_min, cfg)
+    valid = alpha_3dgs > cfg.alpha_min
+    found = disparity_change(median_filter(disp_unedited, cfg.median), median_filter(disp_edited, cfg.median), valid, cfg)
+    return unchanged_pixels(found, valid, cfg)
 
 
 def _rejected(report: dict, reason: str) -> tuple:
@@ -241,7 +246,8 @@ def new_gaussians_from_depth(
     disp_edited = median_filter(disp_edited, cfg.median)
     if report["calibration_pixels"] < max(cfg.min_calibration_pixels, 16):
         # No depth to place new geometry at; whether the shape changes at all can still be told.
-        change = uncalibrated_shape_change(disp_unedited, disp_edited, valid, region, cfg)
+        found = disparity_change(disp_unedited, disp_edited, valid, cfg)
+        change = shape_change_verdict(found, region, cfg)
         report["uncalibrated"] = change
         if change is not None and not change["shape_changed"]:
             report["added"] = 0  # a recolour: trusted, nothing to add (refinement recolours)
@@ -250,7 +256,7 @@ def new_gaussians_from_depth(
         # that the edit leaves as they were (an object added on a part that fills the view, the
         # donut's icing seen from above, covers a minority of it); without them nothing could
         # place the object, and densification alone barely drew it.
-        calib_px = unchanged_pixels(disp_unedited, disp_edited, valid, cfg)
+        calib_px = unchanged_pixels(found, valid, cfg)
         report["calibration_pixels_unchanged"] = int(calib_px.sum())
         if report["calibration_pixels_unchanged"] < max(cfg.min_calibration_pixels, 16):
             return _rejected(report, f"only {report['calibration_pixels']} pixels outside the region, and "
