@@ -156,8 +156,11 @@ class RefineConfig:
     distinct_part_blend: float = 0.85
     # A recolour (depth initialization trusted, no change of shape) trains only colours, at this
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
-    # colours far in a few hundred. Not used when the shape may change (docs/method.md).
-    recolour_lr_scale: float = 6.0
+    # colours far in a few hundred. At 6x the colours of the truth suite's recolours (3 x 60
+    # steps) arrived short and dull: the recolours' median gain fell under +10 dB on two fresh
+    # draws, and 12x gains 2 dB on both, no recolour losing gain (docs/results.md). Not used
+    # when the shape may change (docs/method.md).
+    recolour_lr_scale: float = 12.0
     # An edit that may change the shape moves the Gaussians it added (while the source's keep their
     # place: "means" in `source_fixed`) at this multiple of the position learning rate.
     # The new object is placed from one view's depth and that view's edit, which the editor puts a
