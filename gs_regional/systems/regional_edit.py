@@ -158,9 +158,10 @@ class RefineConfig:
     # multiple of their learning rate: 3DGS's rates are made for 30k steps, and a recolour moves
     # colours far in a few hundred. At 6x the colours of the truth suite's recolours (3 x 60
     # steps) arrived short and dull: the recolours' median gain fell under +10 dB on two fresh
-    # draws, and 12x gains 2 dB on both, no recolour losing gain (docs/results.md). Not used
-    # when the shape may change (docs/method.md).
-    recolour_lr_scale: float = 12.0
+    # draws. 9x lifts both over it, no recolour losing gain; 12x gains more but costs the
+    # surroundings up to 7.7 dB (the rim the gate lets through takes more of the editor's
+    # spill; docs/results.md). Not used when the shape may change (docs/method.md).
+    recolour_lr_scale: float = 9.0
     # An edit that may change the shape moves the Gaussians it added (while the source's keep their
     # place: "means" in `source_fixed`) at this multiple of the position learning rate.
     # The new object is placed from one view's depth and that view's edit, which the editor puts a
