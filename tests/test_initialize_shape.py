@@ -96,7 +96,7 @@ def test_uncalibrated_shape_change_on_known_disparities():
     """The uncalibrated test on disparities with a known answer: a slanted surface seen under two
     different affine maps with noise has no change of shape; the same with a nearer bump over 3 %
     of the pixels has one; a bump moved *back* (uncovered, not added) is none."""
-    from gs_regional.edit.initialize import uncalibrated_shape_change
+    from gs_regional.edit.initialize import disparity_change, shape_change_verdict
 
     g = torch.Generator().manual_seed(0)
     h = w = 64
@@ -110,13 +110,16 @@ def test_uncalibrated_shape_change_on_known_disparities():
         return scale * d + shift + 0.005 * float(true.max() - true.min()) * torch.randn(h, w, generator=g)
 
     unedited = mono(true, 2.0, 0.1)
-    same = uncalibrated_shape_change(unedited, mono(true, 3.5, -0.2), valid, valid, cfg)
-    nearer = uncalibrated_shape_change(unedited, mono(torch.where(bump, true * 1.2, true), 3.5, -0.2), valid, valid, cfg)
-    back = uncalibrated_shape_change(unedited, mono(torch.where(bump, true * 0.8, true), 3.5, -0.2), valid, valid, cfg)
+    def verdict(edited, opaque=valid):
+        return shape_change_verdict(disparity_change(unedited, edited, opaque, cfg), valid, cfg)
+
+    same = verdict(mono(true, 3.5, -0.2))
+    nearer = verdict(mono(torch.where(bump, true * 1.2, true), 3.5, -0.2))
+    back = verdict(mono(torch.where(bump, true * 0.8, true), 3.5, -0.2))
     print(same, nearer, back)
     assert same["shape_changed"] is False and nearer["shape_changed"] is True and back["shape_changed"] is False
     assert nearer["nearer_pixels"] >= 0.8 * int(bump.sum())
-    assert uncalibrated_shape_change(unedited, unedited, valid & False, valid, cfg) is None  # nothing opaque
+    assert verdict(unedited, opaque=valid & False) is None  # nothing opaque
 
 
 def test_a_corrupted_depth_is_rejected():

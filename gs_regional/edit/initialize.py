@@ -164,17 +164,10 @@ def disparity_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor, cf
     return change, noise, cfg.noise_sigmas * max(noise, 1e-6)
 
 
-def uncalibrated_shape_change(du: torch.Tensor, de: torch.Tensor, valid: torch.Tensor,
-                              region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
-    """Whether the edited view's monocular depth shows a change of shape in `region`, told from the
-    two monocular disparities alone (`disparity_change`), for a view with no pixels to calibrate
-    on (the region fills it). The disparities come median-filtered (`cfg.median`). None when there
-    are too few opaque pixels to tell."""
-    return shape_change_verdict(disparity_change(du, de, valid, cfg), region, cfg)
-
-
 def shape_change_verdict(found: Optional[tuple], region: torch.Tensor, cfg: InitConfig) -> Optional[dict]:
-    """`uncalibrated_shape_change` from a `disparity_change` result. Noise goes both ways, so the
+    """Whether the edited view's monocular depth shows a change of shape in `region`, from a
+    `disparity_change` result (`found`; None: too few opaque pixels to tell, and None comes back),
+    for a view with no pixels to calibrate on (the region fills it). Noise goes both ways, so the
     pixels that moved *back* by as much as the threshold say how many nearer ones it explains. The
     shape changed when the nearer pixels in the region clearly exceed that count and
     `min_changed_fraction` of the region."""
