@@ -156,6 +156,20 @@ def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_
     return torch.where(den > 1e-12, blend, torch.zeros_like(blend))
 
 
+def recoloured(num: torch.Tensor, den: torch.Tensor, seen: torch.Tensor, min_blend: float,
+               reference_quantile: float = 0.99) -> torch.Tensor:
+    """(N,) bool: the `seen` Gaussians whose mean edit_blend (`num` / `den`, rendering-weighted
+    over their views) reaches `min_blend` times the blend the `reference_quantile` of the seen
+    ones reach, capped at 1 (0: `min_blend` itself). In a part the edit covers whole that
+    reference is 1; a part a few pixels across is all edge, and its own Gaussians then take as
+    little of the edit's colour as a larger part's rim takes of its bleed."""
+    need = min_blend
+    if reference_quantile > 0 and bool(seen.any()):
+        best = float(column_quantile((num / den.clamp_min(1e-12))[seen][:, None], reference_quantile)[0])
+        need *= min(max(best, 0.0), 1.0)
+    return seen & (num >= need * den)
+
+
 def distinct_parts(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor, full_blend: float,
                    quantile: float = 0.95, margin: float = 1.5, min_distance: float = 0.25,
                    min_core_fraction: float = 0.2) -> torch.Tensor:

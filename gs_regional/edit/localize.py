@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
 from gs_regional.renderers.base import PixelWeights
-from gs_regional.utils.image import gaussian_blur
+from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.sh import sh_to_color
 
 
@@ -87,18 +87,31 @@ def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch
 
 
 def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor], selected: torch.Tensor,
-                   faint: bool = False) -> torch.Tensor:
+                   faint: bool = False, tolerance_px: int = 0) -> torch.Tensor:
     """IoU, per view, of the 2D mask with the render of the 3D selection (V,): the pixels the
     selection covers by more than half. With `faint` (the views-disagree stop), a view in which it
     covers no pixel by half (a part a pixel or two across) uses the pixels it covers by more than
     half of its most, whose IoU is otherwise 0 whatever the mask; the lift's view weights keep the
-    plain rule, so such views have no say in the lift."""
+    plain rule, so such views have no say in the lift.
+
+    `tolerance_px` > 0 (the stop) counts a pixel of either mask as shared when the other mask
+    lies within that many pixels of it: the IoU 1 / (1/p + 1/q - 1) of those fractions p, q.
+    Relevance maps reach a pixel or two past the region; on a part 3 px across that halves the
+    plain IoU though both masks lie on the same spot, while a mask elsewhere stays apart."""
     out = []
     for view, m in zip(views, masks):
         cover = splat_selection(view, selected)
         peak = float(cover.max())
         r = cover > (0.5 * peak if faint and peak <= 0.5 else 0.5)
         m = m.to(r.device) > 0.5
+        if tolerance_px > 0:
+            if not (r.any() and m.any()):
+                out.append(0.0)
+                continue
+            p = float((m & dilate(r, tolerance_px)).sum()) / float(m.sum())
+            q = float((r & dilate(m, tolerance_px)).sum()) / float(r.sum())
+            out.append(0.0 if p * q == 0 else 1.0 / (1.0 / p + 1.0 / q - 1.0))
+            continue
         out.append(float((r & m).sum()) / max(float((r | m).sum()), 1.0))
     return torch.tensor(out, device=selected.device)
 

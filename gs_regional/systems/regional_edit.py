@@ -9,7 +9,9 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import composite_target, distinct_parts, edit_blend, edit_change, recoloured_fraction
+from gs_regional.edit.composite import (
+    composite_target, distinct_parts, edit_blend, edit_change, recoloured, recoloured_fraction,
+)
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
@@ -75,6 +77,10 @@ class LocalizeConfig:
     # instruction names nothing the editor finds consistently, and the run stops with the source
     # written unchanged. 0 never stops.
     min_view_agreement: float = 0.3
+    # ... where a mask pixel within this many pixels of the other mask counts as shared
+    # (gs_regional.edit.localize.mask_agreement): a part a few pixels across, its masks a pixel
+    # off, is the same place (the face patches of 14-53 Gaussians that stopped; docs/method.md).
+    agreement_tolerance_px: int = 1
     # The first full edit (initialization) checked against the selection, without ground truth:
     # the fraction of the editor's change beyond its noise in that view (tone drift fitted away,
     # as for the composite; gs_regional.edit.composite.edit_change) within 2 px of the localized
@@ -147,6 +153,13 @@ class RefineConfig:
     # that rim learned the bleed, which costs the unedited surroundings ~15 dB (docs/method.md).
     # 0 lets every selected Gaussian train.
     min_edit_blend: float = 0.5
+    # The gate's minimum is `min_edit_blend` times the blend that this quantile of the seen
+    # selected Gaussians reaches (capped at 1, gs_regional.edit.composite.recoloured): a part a
+    # few pixels across is all edge, its pixels half covered, and even its own
+    # Gaussians take under half of the edit's nearby colour (0.2-0.45 on the face patches that
+    # came out unchanged), while in a larger part this quantile is 1. 0 compares with
+    # `min_edit_blend` as it is (docs/method.md).
+    gate_reference_quantile: float = 0.99
     # ... and one recoloured by less than this whose source colour lies well outside the colours
     # of the selected Gaussians recoloured by more (gs_regional.edit.composite.distinct_parts) is
     # a part of its own and keeps its source colours too: the editor spills about half of its
@@ -272,10 +285,14 @@ class RegionalEdit(EditSystemBase):
         need(0 <= r.min_recoloured_fraction <= 1, "refine.min_recoloured_fraction", "a number in [0, 1]",
              r.min_recoloured_fraction)
         need(0 <= r.min_edit_blend <= 1, "refine.min_edit_blend", "a number in [0, 1]", r.min_edit_blend)
+        need(0 <= r.gate_reference_quantile <= 1, "refine.gate_reference_quantile", "a number in [0, 1]",
+             r.gate_reference_quantile)
         need(0 <= r.distinct_part_blend <= 1, "refine.distinct_part_blend", "a number in [0, 1]", r.distinct_part_blend)
         need(0 <= r.composite_min_blend <= 1, "refine.composite_min_blend", "a number in [0, 1]", r.composite_min_blend)
         need(r.next_frontal in ("frontier", "random"), "refine.next_frontal", "'frontier' or 'random'", r.next_frontal)
         need(lc.max_views >= 1, "localization.max_views", "an integer >= 1", lc.max_views)
+        need(lc.agreement_tolerance_px >= 0, "localization.agreement_tolerance_px", "an integer >= 0 (pixels)",
+             lc.agreement_tolerance_px)
         need(r.views_per_step is None or r.views_per_step >= 1, "refine.views_per_step",
              "an integer >= 1 or null (one per process)", r.views_per_step)
         need(0 <= lc.timestep < n_t, "localization.timestep", f"a timestep in [0, {n_t - 1}]", lc.timestep)
@@ -361,7 +378,7 @@ class RegionalEdit(EditSystemBase):
             self.localize_metrics["view_weights"] = [round(float(w), 3) for w in lifted["view_weights"]]
             selected = expand_selection(g.means.detach(), selected, lc.expand_radius * scene.extent)
             selected = parallel.from_rank_zero(self, selected)  # every process edits one selection
-            iou = mask_agreement(lifted["views"], masks, selected, faint=True)
+            iou = mask_agreement(lifted["views"], masks, selected, faint=True, tolerance_px=lc.agreement_tolerance_px)
             self.localize_metrics["view_agreement"] = float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
@@ -752,7 +769,7 @@ class RegionalEdit(EditSystemBase):
         src = g.source_index
         selected = (src >= 0) & self.source_selection.to(self.device)[src.clamp_min(0)]
         seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
-        takes = (selected & ~seen) | (seen & (num >= r.min_edit_blend * den))
+        takes = (selected & ~seen) | recoloured(num, den, seen, r.min_edit_blend, r.gate_reference_quantile)
         if r.distinct_part_blend > 0:
             colours = sh_to_rgb(self.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
             distinct = distinct_parts(colours, num / den.clamp_min(1e-12), seen, r.distinct_part_blend)
