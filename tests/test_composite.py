@@ -553,3 +553,44 @@ def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path):
     kept, free = moved["kept"][0], moved["free"][0]
     assert kept["psnr_outside_vs_true_edit"] > free["psnr_outside_vs_true_edit"] + 2.0, (kept, free)
     assert kept["psnr_region_vs_true_edit"] > free["psnr_region_vs_true_edit"] - 0.5
+
+
+def _recolour_views(size: int, bleed: float = 0.5):
+    """A grey view, and the same view with a square of `size` px recoloured red as the simulated
+    editor paints it: its edges soft (a 1 px blur) and its colour bled past them (at most `bleed`
+    of it, fading over 2 px). Returns source, edited, the true patch and the ring of 2 px round it."""
+    source = torch.full((32, 32, 3), 0.5)
+    area = torch.zeros(32, 32)
+    lo = 16 - size // 2
+    area[lo:lo + size, lo:lo + size] = 1
+    soft = gaussian_blur(area[None], 1.0)[0]
+    spill = (2 * gaussian_blur(area[None], 2.0)[0]).clamp(0, 1) * (1 - area) * bleed
+    weight = torch.maximum(soft, spill)
+    ring = dilate(area, 2) & (area == 0)
+    edited = source * (1 - weight[..., None]) + torch.tensor([0.9, 0.1, 0.1]) * weight[..., None]
+    return source, edited, area.bool(), ring
+
+
+def test_the_recolour_gate_takes_a_part_a_few_pixels_across_and_declines_a_larger_parts_bleed():
+    """Known answer: a Gaussian at every pixel, its footprint a 1.5 px Gaussian, its blend vote
+    the footprint-weighted mean of the view's edit_blend (as the gate gathers it). A part 16 px
+    across takes the edit fully inside and under half on the bleed round it: the gate
+    (min_edit_blend 0.5 of what the best-recoloured Gaussians reach, at most 1) takes its
+    interior, declines the bleed beyond its edge pixel, the same as a fixed 0.5. A part 2 px across is all
+    soft edge: its own Gaussians take under half of the edit's nearby colour, so a fixed 0.5
+    declined all of it (the face patches of 14-53 Gaussians that came out unchanged); relative to
+    its best Gaussians it is taken, and the Gaussians beyond 2 px of it are still declined."""
+    from gs_regional.edit.composite import edit_blend, recoloured
+
+    for size in (16, 2):
+        source, edited, part, ring = _recolour_views(size)
+        votes = gaussian_blur(edit_blend(edited, source).clamp(0, 1)[None], 1.5)[0].reshape(-1)
+        seen = (edited - source).abs().amax(-1).reshape(-1) > 0.02  # what the edit reaches
+        takes = recoloured(votes, torch.ones_like(votes), seen, 0.5, 0.99).reshape(32, 32)
+        fixed = recoloured(votes, torch.ones_like(votes), seen, 0.5, 0.0).reshape(32, 32)
+        assert takes[part & ~dilate(~part, 1)].all() and takes[part].float().mean() > 0.95, size
+        if size == 16:
+            assert not takes[ring & ~dilate(part, 1)].any() and torch.equal(takes, fixed)
+        else:
+            assert float(votes.reshape(32, 32)[part].max()) < 0.5 and not fixed.any()
+            assert takes[part].all() and not takes[~dilate(part, 2)].any()
