@@ -594,3 +594,6 @@ def test_the_recolour_gate_takes_a_part_a_few_pixels_across_and_declines_a_large
         else:
             assert float(votes.reshape(32, 32)[part].max()) < 0.5 and not fixed.any()
             assert takes[part].all() and not takes[~dilate(part, 2)].any()
+    # An edit that recolours nothing (every blend 0) lets nothing through: the reference has a floor.
+    zero = torch.zeros(32 * 32)
+    assert not recoloured(zero, torch.ones_like(zero), torch.ones_like(zero, dtype=torch.bool), 0.5, 0.99).any()

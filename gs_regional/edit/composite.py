@@ -156,17 +156,24 @@ def edit_blend(edited: torch.Tensor, source: torch.Tensor, sigma: float = SPILL_
     return torch.where(den > 1e-12, blend, torch.zeros_like(blend))
 
 
+# The reference never falls below this: an edit whose best-recoloured Gaussians take less of its
+# colour reaches none of them (the face patches' best took about 0.45), and a reference of 0
+# would let every selected Gaussian through when the views recolour nothing.
+MIN_GATE_REFERENCE = 0.3
+
+
 def recoloured(num: torch.Tensor, den: torch.Tensor, seen: torch.Tensor, min_blend: float,
                reference_quantile: float = 0.99) -> torch.Tensor:
     """(N,) bool: the `seen` Gaussians whose mean edit_blend (`num` / `den`, rendering-weighted
     over their views) reaches `min_blend` times the blend the `reference_quantile` of the seen
-    ones reach, capped at 1 (0: `min_blend` itself). In a part the edit covers whole that
-    reference is 1; a part a few pixels across is all edge, and its own Gaussians then take as
-    little of the edit's colour as a larger part's rim takes of its bleed."""
+    ones reach, kept within [MIN_GATE_REFERENCE, 1] (`reference_quantile` 0: `min_blend` itself).
+    In a part the edit covers whole that reference is 1; a part a few pixels across is all edge,
+    and its own Gaussians then take as little of the edit's colour as a larger part's rim takes
+    of its bleed."""
     need = min_blend
     if reference_quantile > 0 and bool(seen.any()):
         best = float(column_quantile((num / den.clamp_min(1e-12))[seen][:, None], reference_quantile)[0])
-        need *= min(max(best, 0.0), 1.0)
+        need *= min(max(best, MIN_GATE_REFERENCE), 1.0)
     return seen & (num >= need * den)
 
 
