@@ -154,11 +154,11 @@ class RefineConfig:
     # 0 lets every selected Gaussian train.
     min_edit_blend: float = 0.5
     # The gate's minimum is `min_edit_blend` times the blend that this quantile of the seen
-    # selected Gaussians reaches (capped at 1, gs_regional.edit.composite.recoloured): a part a
-    # few pixels across is all edge, its pixels half covered, and even its own
-    # Gaussians take under half of the edit's nearby colour (0.2-0.45 on the face patches that
-    # came out unchanged), while in a larger part this quantile is 1. 0 compares with
-    # `min_edit_blend` as it is (docs/method.md).
+    # selected Gaussians reaches, kept within [0.3, 1] (gs_regional.edit.composite.recoloured): a
+    # part a few pixels across is all edge, its pixels half covered, and even its own Gaussians
+    # take under half of the edit's nearby colour (0.2-0.45 on the face patches that came out
+    # unchanged), while in a larger part this quantile is 1. 0 compares with `min_edit_blend` as
+    # it is (docs/method.md).
     gate_reference_quantile: float = 0.99
     # ... and one recoloured by less than this whose source colour lies well outside the colours
     # of the selected Gaussians recoloured by more (gs_regional.edit.composite.distinct_parts) is
