@@ -95,7 +95,8 @@ def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor],
     plain rule, so such views have no say in the lift.
 
     `tolerance_px` > 0 (the stop) counts a pixel of either mask as shared when the other mask
-    lies within that many pixels of it: the IoU 1 / (1/p + 1/q - 1) of those fractions p, q.
+    lies within that many pixels of it: the IoU 1 / (1/p + 1/q - 1) of those fractions p, q of
+    each mask (at 0 that is the plain IoU).
     Relevance maps reach a pixel or two past the region; on a part 3 px across that halves the
     plain IoU though both masks lie on the same spot, while a mask elsewhere stays apart."""
     out = []
@@ -104,15 +105,11 @@ def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor],
         peak = float(cover.max())
         r = cover > (0.5 * peak if faint and peak <= 0.5 else 0.5)
         m = m.to(r.device) > 0.5
-        if tolerance_px > 0:
-            if not (r.any() and m.any()):
-                out.append(0.0)
-                continue
-            p = float((m & dilate(r, tolerance_px)).sum()) / float(m.sum())
-            q = float((r & dilate(m, tolerance_px)).sum()) / float(r.sum())
-            out.append(0.0 if p * q == 0 else 1.0 / (1.0 / p + 1.0 / q - 1.0))
-            continue
-        out.append(float((r & m).sum()) / max(float((r | m).sum()), 1.0))
+        # a, b: the pixels of each mask within tolerance_px of the other (0: both the intersection,
+        # and the expression is the plain IoU exactly: integer counts, one rounding)
+        a = float((m & dilate(r, tolerance_px)).sum())
+        b = float((r & dilate(m, tolerance_px)).sum())
+        out.append(a * b / (b * float(m.sum()) + a * float(r.sum()) - a * b) if a * b > 0 else 0.0)
     return torch.tensor(out, device=selected.device)
 
 
