@@ -558,26 +558,25 @@ def test_the_first_cycle_edits_the_first_view_again_from_the_initialized_scene(t
     its target, as a recolour does."""
     from gs_regional.sim.editor import SimulatedEditor
 
-    edit, calls = SimulatedEditor._edit, []
+    edit, partial_seeds = SimulatedEditor._edit, []
 
     def recording(self, images, cond_images, prompt, t_start, seeds, cameras):
-        calls.extend((c.image_name, t_start) for c in cameras)
+        if t_start is not None:
+            partial_seeds.extend(seeds)
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
     monkeypatch.setattr(SimulatedEditor, "_edit", recording)
     short = [*COMMON, "system.localization.max_views=8", "system.refine.cycles=1", "system.refine.iterations_per_cycle=3",
              "system.refine.m=2"]
-    seen = {}
+    runs = {}
     for name, extra in (("again", []), ("full", ["system.refine.reedit_first_view=false"]),
                         ("recolour", ["data.edit=recolor", "system.prompt=make his head red"])):
-        calls.clear()
+        partial_seeds.clear()
         m = metrics_of(launch(tmp_path, name, "configs/demo.yaml", *short, *extra))
-        first = [n for n, t in calls if t is None][-1]  # the view the first full edit went to
-        seen[name] = (first, [t for n, t in calls if n == first], m, [n for n, t in calls if t is not None])
-    (first, again, m_again, edited_again), (_, full, m_full, edited_full) = seen["again"], seen["full"]
-    assert seen["recolour"][1] == [None]  # a recolour keeps its full edit as the target (no geometry to place)
-    assert again == [None, m_again["t_starts"][0]]  # the full edit, then a partial one in cycle 1
-    assert full == [None]
-    assert first in edited_again and first not in edited_full
-    assert len(set(edited_again)) == len(edited_again) == 3 and len(edited_full) == 2  # m=2 neighbours (+ the first)
-    assert m_again["unet_evals"] > m_full["unet_evals"]  # the cost: one partial edit
+        # The cycle's partial edits, by view: each view's seed is seed + 1000 (cycle + 1) + view.
+        runs[name] = (m, sorted(s - 1000 for s in partial_seeds))  # configs/demo.yaml: seed 0
+    (again, edited_again), (full, edited_full), (recolour, edited_recolour) = runs["again"], runs["full"], runs["recolour"]
+    assert again["v_first"] == full["v_first"] and again["v_first"] in edited_again  # edited again in cycle 1
+    assert again["v_first"] not in edited_full and recolour["v_first"] not in edited_recolour
+    assert len(edited_again) == 3 and len(edited_full) == 2  # the m=2 neighbours (+ the first view)
+    assert again["unet_evals"] > full["unet_evals"]  # the cost: one partial edit

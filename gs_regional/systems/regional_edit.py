@@ -718,7 +718,7 @@ class RegionalEdit(EditSystemBase):
                 frontal = frontier_view(scene.cameras, self.edited_views, r.m, scene.train_indices, gen)
             else:  # the paper's choice
                 frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
-        reuse_first = cycle == 0 and not (r.reedit_first_view and self.shape_may_change)
+        full_edit_is_target = cycle == 0 and not (r.reedit_first_view and self.shape_may_change)
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
 
@@ -727,7 +727,7 @@ class RegionalEdit(EditSystemBase):
             # one call (batched by guidance.batch_size), each with its own seed as if edited alone;
             # with several processes, each edits its share of the views (map_views).
             mine = [views[k] for k in ks]
-            to_edit = [j for j in mine if not (reuse_first and j == self.v_first)]
+            to_edit = [j for j in mine if not (full_edit_is_target and j == self.v_first)]
             edited = {}
             if to_edit:
                 current = torch.stack([self.as_image(self.render_view(j)["rgb"], "the current renders") for j in to_edit])
@@ -737,7 +737,7 @@ class RegionalEdit(EditSystemBase):
                     cameras=[scene.cameras[j] for j in to_edit],
                 )
                 edited = dict(zip(to_edit, out.to(self.device)))
-            if reuse_first and self.v_first in mine:
+            if full_edit_is_target and self.v_first in mine:
                 edited[self.v_first] = self.first_edit  # the first, full edit is this cycle's frontal target
             return torch.stack([self.composite(j, edited[j]) for j in mine])
 
