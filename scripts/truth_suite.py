@@ -56,6 +56,12 @@ refinement cycle of 10 iterations.
 outputs/truth_suite/part unless --out is given). `system.localization.min_view_agreement=1.01`
 stops every run right after localization: a draw's mask IoU in about 2 minutes. --size 128 runs
 the draw at 128² views instead of 64² (the face photos scaled alike).
+--repeats R runs each case R times (run seeds +0..+R-1: the editor's draws, the views, the
+densification samples; the scene and the truth stay) and reports each case's median run with its
+range: one run of a case differs from the next seed's by several dB outside the footprint
+(docs/results.md), more than most changes between two codes. --compare BEFORE sets a run (or
+--replot) against another run of the draw case by case, a difference inside both runs' ranges
+marked `~`.
 """
 from __future__ import annotations
 
@@ -495,25 +501,62 @@ def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[
 
 
 # -------------------------------------------------------------------------------------------- run
-def run_case(case: dict, subject: Optional[Subject], s: dict, runs_dir: str) -> dict:
-    """Resolve and run one case; its record (an `error` instead of metrics when it failed)."""
+# The figures a case with --repeats reports as the median over its runs (each run's own in `repeats`).
+REPEAT_KEYS = ("gain", "psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "psnr_vs_true_edit",
+               "psnr_unedited", "mask_iou", "mask_iou_seen", "gaussians_added", "source_deleted", "unet_evals",
+               "seconds_total")
+REPEAT_SEED_STEP = 1  # run j of a case uses its run seed + j (run 0 is the draw's own run)
+
+
+def run_case(case: dict, subject: Optional[Subject], s: dict, runs_dir: str, repeats: int = 1) -> dict:
+    """Resolve and run one case; its record (an `error` instead of metrics when it failed).
+
+    With `repeats` > 1 the case runs that many times, the run seed shifted by REPEAT_SEED_STEP each
+    time (the editor's draws, the views, the densification samples change; the scene and the truth
+    do not): the record holds run 0's metrics with the REPEAT_KEYS replaced by their median over the
+    runs, `stopped` set when any run stopped, and each run's REPEAT_KEYS in `repeats`. One run of a
+    case differs from another seed's by several dB outside the footprint (docs/results.md), so a
+    per-case difference between two codes means little below that spread."""
     rec = dict(case)
     try:
         config, overrides, facts = resolve(case, subject, s)
     except Exception as e:  # a draw that cannot be placed is reported, the suite goes on
         return {**rec, **{k: None for k in METRIC_KEYS}, "error": f"resolve: {e}"}
-    overrides = overrides + [f"seed={case['run_seed']}", f"tag={case['kind']}"] + s["budget"] + COMMON
-    rec.update(facts, config=config, overrides=overrides)
+    tail = [f"tag={case['kind']}"] + s["budget"] + COMMON
+    rec.update(facts, config=config, overrides=overrides + [f"seed={case['run_seed']}"] + tail)
+    name = f"{case['id']}_{case['scene'].replace(':', '')}"
     t0 = time.perf_counter()
-    try:
-        m = run(runs_dir, f"{case['id']}_{case['scene'].replace(':', '')}", config, *overrides)
-    except (SystemExit, Exception) as e:
-        return {**rec, **{k: None for k in METRIC_KEYS}, "error": str(e) or type(e).__name__,
-                "wall_seconds": round(time.perf_counter() - t0, 2)}
+    runs = []
+    for j in range(repeats):
+        seed = case["run_seed"] + j * REPEAT_SEED_STEP
+        try:
+            m = run(runs_dir, name + (f"_r{j}" if j else ""), config, *overrides, f"seed={seed}", *tail)
+        except (SystemExit, Exception) as e:
+            return {**rec, **{k: None for k in METRIC_KEYS}, "error": (str(e) or type(e).__name__) + (f" (run {j}, seed {seed})" if j else ""),
+                    "wall_seconds": round(time.perf_counter() - t0, 2)}
+        m["gain"] = gain(m)
+        runs.append((seed, m))
+    m = runs[0][1]
     rec.update({k: m.get(k) for k in METRIC_KEYS})
+    rec["gain"] = m["gain"]
     rec["trial"] = m["trial"]
+    if repeats > 1:
+        rec["repeats"] = [{"run_seed": seed, "stopped": r.get("stopped"), "trial": r["trial"],
+                           **{k: r.get(k) for k in REPEAT_KEYS}} for seed, r in runs]
+        for k in REPEAT_KEYS:
+            vals = [r.get(k) for _, r in runs]
+            rec[k] = statistics.median(vals) if all(v is not None for v in vals) else None
+        stops = [r["stopped"] for _, r in runs if r.get("stopped")]
+        rec["stopped"] = f"{stops[0]} ({len(stops)} of {repeats} runs)" if stops else None
     rec["wall_seconds"] = round(time.perf_counter() - t0, 2)
     return rec
+
+
+def spread(r: dict, key: str) -> Optional[Tuple[float, float]]:
+    """(min, max) of `key` over a case's --repeats runs; None for a single run."""
+    vals = [x.get(key) for x in r.get("repeats") or []]
+    vals = [v for v in vals if v is not None]
+    return (min(vals), max(vals)) if len(vals) > 1 else None
 
 
 def gain(r: dict) -> Optional[float]:
@@ -572,7 +615,8 @@ def select_cases(cases: Sequence[dict], only: Sequence[str] = (), kinds: Sequenc
 
 
 def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = (),
-              only: Sequence[str] = (), kinds: Sequence[str] = (), size: Optional[int] = None) -> dict:
+              only: Sequence[str] = (), kinds: Sequence[str] = (), size: Optional[int] = None,
+              repeats: int = 1) -> dict:
     """Run the draw's cases (those named in `only`, of the `kinds` given, when given) and write
     the JSON after each."""
     s = settings(quick, size)
@@ -587,7 +631,7 @@ def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequenc
             print(f"!! LEFT OUT: {why}: its cases do not run (set GS_REGIONAL_DATA to the folder holding "
                   "donut/ and face/)")
         print("!" * 100 + "\n", flush=True)
-    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "only": list(only), "kinds": list(kinds),
+    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "only": list(only), "kinds": list(kinds), "repeats": repeats,
                "settings": {**s, "common": COMMON},
                "shared_data": SHARED_DATA, "left_out": missing, "records": []}
     runs_dir = os.path.join(out, "runs")
@@ -596,13 +640,14 @@ def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequenc
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case['id']} {case['kind']} on {case['scene']}"
               f"{' (its own edit)' if case['native'] else ''}", flush=True)
-        rec = run_case(case, subjects.get(case["scene"]), s, runs_dir)
-        rec["gain"] = gain(rec)
+        rec = run_case(case, subjects.get(case["scene"]), s, runs_dir, repeats)
+        rec.setdefault("gain", gain(rec))
         if rec.get("error"):
             print(f"error: {case['id']} failed: {rec['error']}", flush=True)
         else:
+            over = f" (median of {repeats} runs)" if repeats > 1 else ""
             print(f"    {rec['prompt']!r}: gain {sweeps.fmt(rec['gain'])} dB, outside "
-                  f"{sweeps.fmt(rec['psnr_outside_vs_true_edit'])} dB, IoU {sweeps.fmt(rec['mask_iou'])}, "
+                  f"{sweeps.fmt(rec['psnr_outside_vs_true_edit'])} dB, IoU {sweeps.fmt(rec['mask_iou'])}{over}, "
                   f"{rec['wall_seconds']:.1f} s", flush=True)
         payload["records"].append(rec)
         sweeps.write_json(os.path.join(out, JSON_NAME), payload)
@@ -672,6 +717,16 @@ DISTRIBUTION = (
 )
 
 
+def seed_spreads(records: Sequence[dict]) -> Dict[str, List[float]]:
+    """Per figure (gain, outside), each repeated case's max - min over its runs."""
+    out = {}
+    for name, key in (("gain", "gain"), ("outside", "psnr_outside_vs_true_edit")):
+        v = [sp[1] - sp[0] for sp in (spread(r, key) for r in records if not r.get("error")) if sp]
+        if v:
+            out[name] = v
+    return out
+
+
 def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
     records = payload["records"]
     print(f"\ntruth suite: seed {payload['seed']} ({len(records)} cases"
@@ -687,7 +742,9 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
             continue
         truth = r.get("true_added") if r["kind"].startswith("add") else f"region {r.get('region_gaussians')}"
         stop = f" STOPPED ({r['stopped']})" if r.get("stopped") else ""
-        print(f"{head} {sweeps.fmt(r['gain'])}{stop} | {sweeps.fmt(r['psnr_outside_vs_true_edit'])} | "
+        rng = lambda key: "" if spread(r, key) is None else " ({} to {})".format(*map(sweeps.fmt, spread(r, key)))  # noqa: E731
+        print(f"{head} {sweeps.fmt(r['gain'])}{rng('gain')}{stop} | {sweeps.fmt(r['psnr_outside_vs_true_edit'])}"
+              f"{rng('psnr_outside_vs_true_edit')} | "
               f"{sweeps.fmt(r['psnr_unedited'])} | {sweeps.fmt(r['mask_iou'])} | {r['gaussians_added']} ({truth}) | "
               f"{sweeps.fmt(r.get('wall_seconds'))} |")
     print("\n| metric | n | min | median | max |")
@@ -697,8 +754,14 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
         vals = [float(v) for v in vals if v is not None]
         if vals:
             print(f"| {name} | {len(vals)} | {min(vals):.3g} | {statistics.median(vals):.3g} | {max(vals):.3g} |")
+    spreads = seed_spreads(records)
+    if spreads:
+        print(f"\n{payload.get('repeats')} runs a case (run seeds +0..+{payload.get('repeats', 1) - 1}): each figure above is "
+              "their median, the range in brackets; " + "; ".join(
+                  f"{name} spread (max - min) median {statistics.median(v):.2f}, max {max(v):.2f} dB"
+                  for name, v in spreads.items()))
     result = targets(records)
-    print("\ntargets:")
+    print("\ntargets" + (" (on each case's median run)" if spreads else "") + ":")
     for name, met, figure, bad in result:
         print(f"  [{'ok' if met else 'FAIL'}] {name}: {figure}" + (f"; missed by {', '.join(bad)}" if bad else ""))
     return result
@@ -719,6 +782,11 @@ def chart(payload: dict, path: str) -> None:
         xs = range(len(rows))
         ax.bar(xs, [r[key] for r in rows], color=[colors[r["kind"]] for r in rows],
                edgecolor=["black" if r.get("stopped") else "none" for r in rows])
+        ranges = [spread(r, key) for r in rows]
+        if any(ranges):  # --repeats: each bar is a case's median run, the whisker its runs' range
+            ax.errorbar(list(xs), [r[key] for r in rows], fmt="none", ecolor="black", elinewidth=0.8, capsize=2,
+                        yerr=[[r[key] - (sp or (r[key],))[0] for r, sp in zip(rows, ranges)],
+                              [(sp or (0, r[key]))[1] - r[key] for r, sp in zip(rows, ranges)]])
         stopped = [(x, r[key]) for x, r in zip(xs, rows) if r.get("stopped")]
         if stopped:  # a stop leaves the source: gain 0, invisible as a bar
             ax.scatter(*zip(*stopped), marker="x", color="black", zorder=4, s=40)
@@ -746,6 +814,64 @@ def chart(payload: dict, path: str) -> None:
     plt.close(fig)
 
 
+def load_payload(path: str) -> dict:
+    """A suite's JSON, given as the file or the folder holding it."""
+    path = os.path.join(path, JSON_NAME) if os.path.isdir(path) else path
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"--compare: cannot read the truth suite's JSON {path}: {e}")
+
+
+def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before", "after")) -> List[dict]:
+    """Print, for the cases both runs hold, the gain and the outside PSNR before -> after, and the
+    two distributions; returns one row per shared case. A difference inside both runs' seed
+    spreads (--repeats) is marked `~`: one seed's run says nothing about it."""
+    if before.get("seed") != after.get("seed"):
+        print(f"note: the runs are of different draws ({before.get('seed')} and {after.get('seed')}): "
+              "cases of the same id are different edits")
+    b = {r["id"]: r for r in before["records"] if not r.get("error")}
+    a = {r["id"]: r for r in after["records"] if not r.get("error")}
+    shared = [i for i in a if i in b]
+    print(f"\n{names[0]} -> {names[1]}, {len(shared)} cases in both")
+    print("| case | kind | gain dB | outside dB | UNet |")
+    print("| --- | --- | --- | --- | --- |")
+    rows = []
+    for i in shared:
+        x, y = b[i], a[i]
+        row = {"id": i}
+        cells = []
+        for key in ("gain", "psnr_outside_vs_true_edit"):
+            u, v = x.get(key), y.get(key)
+            if u is None or v is None:
+                cells.append(f"{sweeps.fmt(u)} -> {sweeps.fmt(v)}")
+                continue
+            su, sv = spread(x, key), spread(y, key)
+            noise = su is not None and sv is not None and su[0] <= sv[1] and sv[0] <= su[1]
+            row[key] = v - u
+            cells.append(f"{u:.2f} -> {v:.2f} ({v - u:+.2f}{' ~' if noise else ''})")
+        rows.append(row)
+        print(f"| {i} | {y['kind']} | {cells[0]} | {cells[1]} | {x.get('unet_evals')} -> {y.get('unet_evals')} |")
+    print("\n| figure | " + " | ".join(names) + " |")
+    print("| --- | --- | --- |")
+    for name, f in (("gain min / median (dB)", lambda rs: [r["gain"] for r in rs]),
+                    ("outside min / median (dB)", lambda rs: [r["psnr_outside_vs_true_edit"] for r in rs]),
+                    ("UNet evaluations min / median", lambda rs: [r["unet_evals"] for r in rs])):
+        cols = []
+        for rs in ([b[i] for i in shared], [a[i] for i in shared]):
+            vals = [v for v in f(rs) if v is not None]
+            cols.append(f"{min(vals):.2f} / {statistics.median(vals):.2f}" if vals else "-")
+        print(f"| {name} | " + " | ".join(cols) + " |")
+    for rs, name in (([b[i] for i in shared], names[0]), ([a[i] for i in shared], names[1])):
+        met = targets(rs)
+        print(f"{name}: " + "; ".join(f"{'ok' if ok else 'FAIL'} {t.split(',')[0]} ({fig})" for t, ok, fig, _ in met))
+    if shared and not (before.get("repeats", 1) > 1 and after.get("repeats", 1) > 1):
+        print("(single runs: a case's run at another seed differs by several dB outside the footprint; "
+              "compare --repeats runs to tell a change from noise)")
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=None, help="the draw's seed (default: a fresh one, printed)")
@@ -763,6 +889,12 @@ def main(argv=None) -> int:
     ap.add_argument("--resolve-only", action="store_true",
                     help="prepare the scenes and place every drawn case on its splat (anchors, truth counts), no runs")
     ap.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
+    ap.add_argument("--repeats", type=int, default=1, metavar="R",
+                    help="run each case R times with run seeds +0..+R-1 and report each case's median run and the "
+                         "range (default 1; R times the time)")
+    ap.add_argument("--compare", default=None, metavar="BEFORE",
+                    help="after the run (or with --replot), print each case's gain and outside PSNR against "
+                         "another run of the draw (its truth_suite.json or folder), e.g. the code before a change")
     # One value each, so that the overrides after them stay overrides.
     ap.add_argument("--only", default="", metavar="IDS", help="run only these cases of the draw, e.g. c03,c17")
     ap.add_argument("--kind", default=None, choices=["recolor", "add"],
@@ -770,6 +902,8 @@ def main(argv=None) -> int:
     ap.add_argument("overrides", nargs="*", help="launch.py overrides (key=value) for every case, e.g. an ablation: "
                     "system.localize_with_truth=true")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats {args.repeats}: need at least 1 run a case")
     only, kinds = [i.strip() for i in args.only.split(",") if i.strip()], [args.kind] if args.kind else []
     if args.out is None:
         args.out = os.path.join(ROOT, "outputs", "truth_suite", *(["part"] if only or kinds else []))
@@ -791,9 +925,11 @@ def main(argv=None) -> int:
             return resolve_only(seed, n, args.quick, args.out, args.size)
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, min(args.threads or cores, cores)))
-        payload = run_suite(seed, n, args.quick, args.out, args.overrides, only, kinds, args.size)
+        payload = run_suite(seed, n, args.quick, args.out, args.overrides, only, kinds, args.size, args.repeats)
     chart(payload, os.path.join(args.out, PNG_NAME))
     result = print_report(payload)
+    if args.compare:
+        compare_report(load_payload(args.compare), payload, (args.compare, args.out))
     if "wall_seconds" in payload:
         print(f"\nwall time {payload['wall_seconds']:.0f} s; {os.path.join(args.out, JSON_NAME)}, "
               f"{os.path.join(args.out, PNG_NAME)}")

@@ -3,6 +3,7 @@ checked for reproducibility and coverage; the 3-case quick run (synthetic scenes
 needs ../shared/data) runs end to end and writes the JSON and the chart. The quick mode is a check
 of the script, not a measurement."""
 import json
+import statistics
 
 import pytest
 import truth_suite
@@ -118,6 +119,21 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
     assert again["only"] == ["c02"] and [r["id"] for r in again["records"]] == ["c02"]
     for key in ("psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "mask_iou", "gaussians_added", "unet_evals"):
         assert again["records"][0][key] == records[1][key], key
+    # --repeats: the case runs again at the next run seed; its record is the median run, each run kept
+    # (run 0 is the draw's own); --compare sets it against the single run case by case
+    capsys.readouterr()
+    rep = tmp_path / "rep"
+    assert truth_suite.main(["--quick", "--seed", str(SEED), "--only", "c02", "--repeats", "2", "--out", str(rep),
+                             "--compare", str(part)]) == 0
+    twice = json.loads((rep / "truth_suite.json").read_text())
+    runs = twice["records"][0]["repeats"]
+    assert twice["repeats"] == 2 and [x["run_seed"] for x in runs] == [records[1]["run_seed"], records[1]["run_seed"] + 1]
+    assert runs[0]["psnr_outside_vs_true_edit"] == records[1]["psnr_outside_vs_true_edit"]
+    assert runs[0]["trial"] != runs[1]["trial"]
+    for key in ("gain", "psnr_outside_vs_true_edit", "unet_evals"):
+        assert twice["records"][0][key] == pytest.approx(statistics.median(x[key] for x in runs)), key
+    out = capsys.readouterr().out
+    assert "2 runs a case" in out and "1 cases in both" in out and "| c02 | " in out
 
 
 def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path):
@@ -138,3 +154,22 @@ def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path)
     slow, fast = runs[1], runs[3]
     assert truth_suite.gain(fast) > truth_suite.gain(slow) + 0.5
     assert fast["psnr_outside_vs_true_edit"] > slow["psnr_outside_vs_true_edit"] + 2.0
+
+
+def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
+    def rec(i, gain, outside, runs):
+        return {"id": i, "kind": "add_small", "gain": gain, "psnr_outside_vs_true_edit": outside, "unet_evals": 517,
+                "psnr_unedited": 60.0, "mask_iou": 0.8, "stopped": None, "source_deleted": 0, "gaussians_added": 10,
+                "true_added": 10, "repeats": [{"gain": g, "psnr_outside_vs_true_edit": o} for g, o in runs]}
+    before = {"seed": 5, "repeats": 2, "records": [rec("c01", 5.0, 50.0, [(4.0, 48.0), (6.0, 52.0)]),
+                                                    rec("c02", 5.0, 50.0, [(4.9, 49.9), (5.1, 50.1)])]}
+    after = {"seed": 5, "repeats": 2, "records": [rec("c01", 6.0, 51.0, [(5.0, 50.0), (7.0, 52.0)]),
+                                                   rec("c02", 9.0, 40.0, [(8.9, 39.0), (9.1, 41.0)])]}
+    rows = truth_suite.compare_report(before, after)
+    out = capsys.readouterr().out
+    assert rows == [{"id": "c01", "gain": 1.0, "psnr_outside_vs_true_edit": 1.0},
+                    {"id": "c02", "gain": 4.0, "psnr_outside_vs_true_edit": -10.0}]
+    assert "| c01 | add_small | 5.00 -> 6.00 (+1.00 ~) | 50.00 -> 51.00 (+1.00 ~) |" in out  # runs overlap: noise
+    assert "| c02 | add_small | 5.00 -> 9.00 (+4.00) | 50.00 -> 40.00 (-10.00) |" in out  # apart: a change
+    assert "| outside min / median (dB) | 50.00 / 50.00 | 40.00 / 45.50 |" in out
+    assert "single runs" not in out
