@@ -81,6 +81,9 @@ def test_targets_name_the_cases_that_miss_them():
     assert result["median outside-footprint PSNR >= 50 dB"] == (True, [])
     assert result["no stopped run"] == (False, ["c3"])
     assert result["Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)"] == (False, ["c2", "c3"])
+    # a run of the additions alone has no recolour to hold the recolours' target to
+    only_adds = {name: met for name, met, _, _ in truth_suite.targets([rec(2, "add_small", 7.0, 50.0, added=100)])}
+    assert only_adds["median gain of the recolours >= +10 dB"] is None and only_adds["median gain >= +6 dB"] is True
 
 
 def test_quick_run_writes_records_and_chart(tmp_path, capsys):
