@@ -814,7 +814,9 @@ def chart(payload: dict, path: str) -> None:
     handles.append(plt.Line2D([], [], marker="x", color="black", ls=""))
     axes[0].legend(handles, list(colors) + ["stopped (source kept)"], fontsize=8, loc="upper left",
                    bbox_to_anchor=(0, 0.9))
-    fig.suptitle(f"truth suite, seed {payload['seed']}: {len(records)} known edits (simulated editor and depth)")
+    runs = payload.get("repeats", 1)
+    fig.suptitle(f"truth suite, seed {payload['seed']}: {len(records)} known edits (simulated editor and depth)"
+                 + (f"; each bar the median of {runs} runs (run seeds), the whisker their range" if runs > 1 else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
