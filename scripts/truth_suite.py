@@ -524,13 +524,14 @@ def run_case(case: dict, subject: Optional[Subject], s: dict, runs_dir: str, rep
         return {**rec, **{k: None for k in METRIC_KEYS}, "error": f"resolve: {e}"}
     tail = [f"tag={case['kind']}"] + s["budget"] + COMMON
     rec.update(facts, config=config, overrides=overrides + [f"seed={case['run_seed']}"] + tail)
+    base = run_seed(rec)  # a `seed=` override of the whole suite replaces the case's own
     name = f"{case['id']}_{case['scene'].replace(':', '')}"
     t0 = time.perf_counter()
     runs = []
     for j in range(repeats):
-        seed = case["run_seed"] + j * REPEAT_SEED_STEP
+        seed = base + j * REPEAT_SEED_STEP
         try:
-            m = run(runs_dir, name + (f"_r{j}" if j else ""), config, *overrides, f"seed={seed}", *tail)
+            m = run(runs_dir, name + (f"_r{j}" if j else ""), config, *overrides, *tail, f"seed={seed}")
         except (SystemExit, Exception) as e:
             return {**rec, **{k: None for k in METRIC_KEYS}, "error": (str(e) or type(e).__name__) + (f" (run {j}, seed {seed})" if j else ""),
                     "wall_seconds": round(time.perf_counter() - t0, 2)}
@@ -550,6 +551,13 @@ def run_case(case: dict, subject: Optional[Subject], s: dict, runs_dir: str, rep
         rec["stopped"] = f"{stops[0]} ({len(stops)} of {repeats} runs)" if stops else None
     rec["wall_seconds"] = round(time.perf_counter() - t0, 2)
     return rec
+
+
+def run_seed(r: dict) -> int:
+    """The seed a case's (first) run used: the last `seed=` of its overrides (the suite's own
+    overrides come after the case's run seed), else its drawn run seed."""
+    seeds = [o.split("=", 1)[1] for o in r.get("overrides") or [] if o.startswith("seed=")]
+    return int(seeds[-1]) if seeds else int(r["run_seed"])
 
 
 def spread(r: dict, key: str) -> Optional[Tuple[float, float]]:
@@ -832,6 +840,21 @@ def load_payload(path: str) -> dict:
         raise SystemExit(f"--compare: cannot read the truth suite's JSON {path}: {e}")
 
 
+def paired_differences(before: Dict[str, dict], after: Dict[str, dict], ids: Sequence[str], key: str) -> List[float]:
+    """after - before of `key` over the runs of the same case at the same run seed (--repeats, or
+    single runs: `run_seed`), leaving out runs that stopped at either."""
+    out = []
+    for i in ids:
+        runs = lambda r: r.get("repeats") or [{**r, "run_seed": run_seed(r)}]  # noqa: E731
+        x = {u.get("run_seed"): u for u in runs(before[i])}
+        for v in runs(after[i]):
+            u = x.get(v.get("run_seed"))
+            if u is not None and not u.get("stopped") and not v.get("stopped") \
+                    and u.get(key) is not None and v.get(key) is not None:
+                out.append(v[key] - u[key])
+    return out
+
+
 def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before", "after")) -> List[dict]:
     """Print, for the cases both runs hold, the gain and the outside PSNR before -> after, and the
     two distributions; returns one row per shared case. A difference inside both runs' seed
@@ -871,6 +894,12 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
             vals = [v for v in f(rs) if v is not None]
             cols.append(f"{min(vals):.2f} / {statistics.median(vals):.2f}" if vals else "-")
         print(f"| {name} | " + " | ".join(cols) + " |")
+    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")):
+        d = paired_differences(b, a, shared, key)
+        if d:
+            print(f"paired runs (the same run seed at both, neither stopped), {label}: {len(d)} runs, better in "
+                  f"{sum(v > 0 for v in d)}, worse by more than 0.3 dB in {sum(v < -0.3 for v in d)}, median "
+                  f"difference {statistics.median(d):+.2f} dB")
     for rs, name in (([b[i] for i in shared], names[0]), ([a[i] for i in shared], names[1])):
         met = targets(rs)
         print(f"{name}: " + "; ".join(f"{MET_WORDS[ok]} {t.split(',')[0]} ({fig})" for t, ok, fig, _ in met if ok is not None))

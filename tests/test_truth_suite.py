@@ -163,7 +163,8 @@ def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
     def rec(i, gain, outside, runs):
         return {"id": i, "kind": "add_small", "gain": gain, "psnr_outside_vs_true_edit": outside, "unet_evals": 517,
                 "psnr_unedited": 60.0, "mask_iou": 0.8, "stopped": None, "source_deleted": 0, "gaussians_added": 10,
-                "true_added": 10, "repeats": [{"gain": g, "psnr_outside_vs_true_edit": o} for g, o in runs]}
+                "true_added": 10, "repeats": [{"run_seed": 7 + j, "gain": g, "psnr_outside_vs_true_edit": o}
+                                              for j, (g, o) in enumerate(runs)]}
     before = {"seed": 5, "repeats": 2, "records": [rec("c01", 5.0, 50.0, [(4.0, 48.0), (6.0, 52.0)]),
                                                     rec("c02", 5.0, 50.0, [(4.9, 49.9), (5.1, 50.1)])]}
     after = {"seed": 5, "repeats": 2, "records": [rec("c01", 6.0, 51.0, [(5.0, 50.0), (7.0, 52.0)]),
@@ -176,3 +177,17 @@ def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
     assert "| c02 | add_small | 5.00 -> 9.00 (+4.00) | 50.00 -> 40.00 (-10.00) |" in out  # apart: a change
     assert "| outside min / median (dB) | 50.00 / 50.00 | 40.00 / 45.50 |" in out
     assert "single runs" not in out
+    # run by run at the same seed: c01 +1, +1 and c02 +4, +4 (gain); c01 +2, 0 and c02 -10.9, -9.1 (outside)
+    assert "gain: 4 runs, better in 4, worse by more than 0.3 dB in 0, median difference +2.50 dB" in out
+    assert "outside: 4 runs, better in 1, worse by more than 0.3 dB in 2, median difference -4.55 dB" in out
+
+
+def test_a_suite_wide_seed_override_is_the_runs_seed():
+    case = {"run_seed": 41, "overrides": ["data.seed=3", "seed=41", "tag=add_small", "seed=7"]}
+    assert truth_suite.run_seed(case) == 7
+    assert truth_suite.run_seed({"run_seed": 41, "overrides": ["seed=41", "tag=add_small"]}) == 41
+    # runs at another seed are not paired with the draw's own
+    before = {"c01": {"run_seed": 41, "overrides": ["seed=41"], "gain": 5.0}}
+    after = {"c01": {"run_seed": 41, "overrides": ["seed=41", "seed=7"], "gain": 6.0}}
+    assert truth_suite.paired_differences(before, after, ["c01"], "gain") == []
+    assert truth_suite.paired_differences(before, before, ["c01"], "gain") == [0.0]
