@@ -43,7 +43,7 @@ def test_targets_leave_the_surroundings_of_the_edit_alone(edit):
             # timestep each kind gets (refine.t_schedule 750 for a recolour, refine.shape_t_schedule
             # 450 for an edit that may add geometry). From 750 an addition's thin moustache is
             # jittered by a pixel, and the pixels it only partly covers, which take little of its
-            # colour, stay as the source (composite_min_blend): 17.58 -> 16.57 dB in its footprint there.
+            # colour, stay as the source (composite_min_blend, 0.52: 16.06 -> 15.45 dB in its footprint there).
             t_start = 750 if edit == "recolor" else 450
             edited = editor.edit(source[None], source[None], gt.prompt, t_start=t_start, seed=i, cameras=[cam])[0]
             region = render_selection(gt.source, renderer, cam, gt.region)
@@ -328,7 +328,7 @@ def test_an_addition_takes_the_new_object_not_the_colour_the_editor_spilled_arou
     target = composite_target(edited, source, region.float(), added=torch.zeros(h, w), margin_px=6)
     kept = (target[disc > 0] - source[disc > 0]).abs().mean() / (edited[disc > 0] - source[disc > 0]).abs().mean()
     assert kept >= 0.9, "the new object was not kept"
-    spilled = (disc == 0) & (ring > 0.02) & (ring < 0.3)  # under composite_min_blend (0.35)
+    spilled = (disc == 0) & (ring > 0.02) & (ring < 0.45)  # under composite_min_blend (0.52)
     assert bool((spilled & region).any()) and bool((spilled & ~region).any())
     for where, name in ((spilled & region, "over the region"), (spilled & ~region, "beside the region")):
         assert psnr(target[where], source[where]) >= 40, f"the spilled colour {name} became a target"

@@ -209,7 +209,7 @@ def composite_target(
     noise_sigmas: float = 4.0,
     full_coverage: float = 0.5,
     opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
-    min_blend: float = 0.35,
+    min_blend: float = 0.52,
 ) -> torch.Tensor:
     """The edited view where the edit is, the source render elsewhere: the editor's bleed and the
     blur and tone drift of regenerating the whole image never become targets outside the region,
