@@ -830,14 +830,14 @@ def chart(payload: dict, path: str) -> None:
     plt.close(fig)
 
 
-def load_payload(path: str) -> dict:
-    """A suite's JSON, given as the file or the folder holding it."""
-    path = os.path.join(path, JSON_NAME) if os.path.isdir(path) else path
+def load_payload(path: str, option: str = "--compare") -> dict:
+    """A suite's JSON, given as the file or the folder holding it (`option` names it in the error)."""
+    path = path if path.endswith(".json") else os.path.join(path, JSON_NAME)
     try:
         with open(path) as f:
             return json.load(f)
     except (OSError, ValueError) as e:
-        raise SystemExit(f"--compare: cannot read the truth suite's JSON {path}: {e}")
+        raise SystemExit(f"{option}: cannot read the truth suite's JSON {path}: {e}")
 
 
 def paired_differences(before: Dict[str, dict], after: Dict[str, dict], ids: Sequence[str], key: str) -> List[float]:
@@ -945,8 +945,7 @@ def main(argv=None) -> int:
     if args.out is None:
         args.out = os.path.join(ROOT, "outputs", "truth_suite", *(["part"] if only or kinds else []))
     if args.replot:
-        with open(os.path.join(args.out, JSON_NAME)) as f:
-            payload = json.load(f)
+        payload = load_payload(args.out, "--replot")
     else:
         seed = args.seed if args.seed is not None else random.SystemRandom().randrange(1_000_000)
         n = args.cases or (3 if args.quick else 24)

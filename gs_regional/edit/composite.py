@@ -200,6 +200,15 @@ def distinct_parts(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tenso
     return seen & (blend < full_blend) & (distance > max(margin * float(reach), min_distance))
 
 
+# An addition's target takes the edit only where a pixel takes more than half of the new object's
+# colour (`edit_blend`): the half-blend contour is where a symmetric blur (the editor's spill, the
+# antialiasing) leaves the object's true edge; below it the faint added Gaussians that fit the spill
+# grow a halo, more the longer refinement runs (0.35 until the fifteenth session: the truth suite's
+# additions about 4 dB lower outside the footprint; docs/results.md). Not exactly 0.5: a spill at
+# full strength mixes exactly half, and float rounding would decide which side such a pixel falls.
+MIN_OBJECT_BLEND = 0.52
+
+
 def composite_target(
     edited: torch.Tensor,  # (H, W, 3) the 2D editor's output
     source: torch.Tensor,  # (H, W, 3) render of the unedited scene
@@ -209,7 +218,7 @@ def composite_target(
     noise_sigmas: float = 4.0,
     full_coverage: float = 0.5,
     opaque: Optional[torch.Tensor] = None,  # (H, W) bool: where the source renders opaque; None: everywhere
-    min_blend: float = 0.52,
+    min_blend: float = MIN_OBJECT_BLEND,
 ) -> torch.Tensor:
     """The edited view where the edit is, the source render elsewhere: the editor's bleed and the
     blur and tone drift of regenerating the whole image never become targets outside the region,

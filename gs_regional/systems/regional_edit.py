@@ -10,7 +10,7 @@ import torch
 
 from gs_regional.config import ConfigError
 from gs_regional.edit.composite import (
-    composite_target, distinct_parts, edit_blend, edit_change, recoloured, recoloured_fraction,
+    MIN_OBJECT_BLEND, composite_target, distinct_parts, edit_blend, edit_change, recoloured, recoloured_fraction,
 )
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
@@ -151,14 +151,8 @@ class RefineConfig:
     composite_noise_sigmas: float = 4.0
     # An edit that may change the shape: a target pixel keeps the edit only where it takes at least
     # this much of the edit's nearby colour (gs_regional.edit.composite.edit_blend); the colour the
-    # editor spills round a new object stays a source pixel. Just over half: the target's silhouette
-    # is the half-blend contour, where a symmetric blur (the spill, the antialiasing) leaves the
-    # object's true edge; below it the silhouette sits outside the edge, and a halo of faint added
-    # Gaussians fits the spill, more so the longer refinement runs (0.35 until the fifteenth
-    # session: the truth suite's additions about 4 dB lower outside the footprint, 0.6 dB higher in
-    # gain; docs/results.md). Not exactly 0.5: a spill at full strength mixes exactly half, and float
-    # rounding would decide which side such a pixel falls (the demo moved 0.2 dB with it).
-    composite_min_blend: float = 0.52
+    # editor spills round a new object stays a source pixel (why just over half: MIN_OBJECT_BLEND).
+    composite_min_blend: float = MIN_OBJECT_BLEND
     # A pixel the region covers by at least this fraction keeps the edit fully, below it in
     # proportion (gs_regional.edit.composite.composite_target).
     composite_full_coverage: float = 0.5
