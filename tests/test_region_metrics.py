@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gs_regional.metrics.region import (
-    footprint, mask_metrics, masked_psnr, masked_ssim, region_scores, silhouette_split, unedited_scores,
+    error_map, footprint, mask_metrics, masked_psnr, masked_ssim, region_scores, silhouette_split, unedited_scores,
 )
 
 
@@ -81,6 +81,21 @@ def test_unedited_scores_split_silhouette_from_background():
     assert s["psnr_unedited_silhouette"] < masked_psnr(result, source, unedited) - 5
     # nothing opaque: no silhouette score
     assert unedited_scores(result, source, unedited, torch.zeros_like(alpha))["psnr_unedited_silhouette"] is None
+
+
+def test_error_map_shows_what_leaked_outside_the_footprint_in_red(views):
+    """The image a user reads a halo from: the result's error against the truth, red outside the
+    true footprint and grey inside it, scaled by `gain` and clipped at 1."""
+    _, truth, result, inside = views
+    img = error_map(result[0], truth[0], inside[0], gain=8.0)
+    assert img.shape == (16, 16, 3)
+    inner, outer = img[inside[0]], img[~inside[0]]
+    assert torch.allclose(inner, torch.full_like(inner, 0.8), atol=1e-5)  # 0.1 x 8, grey
+    assert torch.allclose(outer[:, 0], torch.full_like(outer[:, 0], 0.08), atol=1e-5)  # 0.01 x 8, red
+    assert float(outer[:, 1:].abs().max()) == 0.0
+    assert float(error_map(result[0], truth[0], inside[0], gain=100.0).max()) == 1.0  # clipped
+    with pytest.raises(ValueError):
+        error_map(result[0], truth[0], inside[0][:8])
 
 
 def test_mask_metrics_known_and_empty():

@@ -165,7 +165,7 @@ def test_edge_votes_drop_only_gaussians_that_look_like_the_outside():
 def test_regional_edit_outputs_and_fidelity_against_in2n(runs):
     trial = get_run(runs, "regional")
     save = Path(trial) / "save"
-    for name in ["edited.ply", "mask.ply", "before_after.png", "metrics.json",
+    for name in ["edited.ply", "mask.ply", "before_after.png", "errors_vs_truth.png", "metrics.json",
                  "initialize/first_view_edited.png", "initialize/depth_new.png", "refine/cycle2_edited_views.png"]:
         assert (save / name).exists(), name
     assert glob.glob(str(save / "turntable.*"))

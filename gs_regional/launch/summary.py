@@ -22,6 +22,7 @@ OUTPUTS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
     ("compressed PLY", ("edited.compressed.ply", "export_step*[0-9].compressed.ply")),
     ("edited region", ("edited_region.ply", "export_step*[0-9]_region.ply")),
     ("before/after", ("before_after.png",)),
+    ("errors vs truth", ("errors_vs_truth.png",)),
     ("test views", ("test_views.png",)),
     ("turntable", ("turntable.mp4", "turntable.gif")),
     ("metrics.json", ("metrics.json",)),

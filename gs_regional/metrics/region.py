@@ -59,6 +59,16 @@ def region_scores(result: torch.Tensor, source: torch.Tensor, truth: torch.Tenso
     return out
 
 
+def error_map(result: torch.Tensor, truth: torch.Tensor, inside: torch.Tensor, gain: float = 8.0) -> torch.Tensor:
+    """(H, W, 3) image of where and how much `result` differs from `truth` (largest channel, x
+    `gain`): red outside the footprint `inside` (what the edit should have left alone), grey in
+    it. A halo, or an added object a pixel off, shows as a red ring."""
+    _checked({"result": result, "truth": truth}, inside)
+    err = ((result - truth).abs().amax(-1) * gain).clamp(0, 1)
+    keep = inside.to(err.dtype)  # 1 in the footprint: grey; 0 outside: red only
+    return torch.stack([err, err * keep, err * keep], -1)
+
+
 def silhouette_split(unedited: torch.Tensor, source_alpha: torch.Tensor, opaque: float = 0.5) -> Dict[str, torch.Tensor]:
     """The unedited pixels where the source renders opaque (alpha > `opaque`: the object's
     silhouette, minus the edit) and the rest of them (the background)."""

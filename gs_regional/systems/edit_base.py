@@ -19,7 +19,7 @@ from gs_regional.geometry.gaussian_model import PARAM_NAMES
 from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
-from gs_regional.metrics.region import footprint, region_scores, unedited_scores
+from gs_regional.metrics.region import error_map, footprint, region_scores, unedited_scores
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
@@ -430,6 +430,8 @@ class EditSystemBase(GaussianSystem):
             metrics["footprint_fraction"] = float(inside.float().mean())
             metrics.update(region_scores(torch.stack([after[i] for i in views]),
                                          torch.stack([self.source_renders[i] for i in views]), truth, inside))
+            self.save_image_grid("errors_vs_truth.png", [
+                [after[i], t, error_map(after[i], t, m)] for i, t, m in zip(views, truth, inside)])
         if self.cfg.eval.clip_model:
             from gs_regional.metrics.clip import ClipMetrics
 
