@@ -90,8 +90,8 @@ def test_error_map_shows_what_leaked_outside_the_footprint_in_red(views):
     img = error_map(result[0], truth[0], inside[0], gain=8.0)
     assert img.shape == (16, 16, 3)
     inner, outer = img[inside[0]], img[~inside[0]]
-    assert torch.allclose(inner, torch.full_like(inner, 0.8), atol=1e-5)  # 0.1 x 8, grey
-    assert torch.allclose(outer[:, 0], torch.full_like(outer[:, 0], 0.08), atol=1e-5)  # 0.01 x 8, red
+    assert torch.allclose(inner, torch.full_like(inner, 0.8), atol=1e-4)  # 0.1 x 8, grey
+    assert torch.allclose(outer[:, 0], torch.full_like(outer[:, 0], 0.08), atol=1e-4)  # 0.01 x 8, red
     assert float(outer[:, 1:].abs().max()) == 0.0
     assert float(error_map(result[0], truth[0], inside[0], gain=100.0).max()) == 1.0  # clipped
     with pytest.raises(ValueError):
