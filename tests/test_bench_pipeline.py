@@ -58,11 +58,11 @@ def test_tiny_pipeline_report(report):
     # branches; one full edit of 4 DDIM steps x 3 branches (the random-weight editor's first full
     # edit changes nothing beyond its noise, but its view shows the selection as well as any, so
     # no other view is edited); cycle 1 (t <= 750: 3 of the DDIM timesteps 751/501/251/1) on the
-    # first view again (the depth shows no trusted change, so the shape may change:
-    # refine.reedit_first_view) and the 2 besides it, cycle 2 (t <= 500: 2 steps) on 3.
-    assert regional["unet_evals"] == 4 * 2 + 4 * 3 + 3 * 3 * 3 + 3 * 2 * 3
+    # 2 views besides the first (the depth shows no trusted change, so the shape may change:
+    # refine.first_cycle_first_view=skip), cycle 2 (t <= 500: 2 steps) on 3.
+    assert regional["unet_evals"] == 4 * 2 + 4 * 3 + 2 * 3 * 3 + 3 * 2 * 3
     # VAE: 4 localization encodes, 1 for the full edit's condition, 2 per partial edit (render + condition).
-    assert (regional["vae_encodes"], regional["vae_decodes"]) == (4 + 1 + 2 * 6, 1 + 6)
+    assert (regional["vae_encodes"], regional["vae_decodes"]) == (4 + 1 + 2 * 5, 1 + 5)
     # in2n edits at steps 0 and 3 from t in [700, 980): 3 or 4 DDIM steps of 3 branches each.
     assert in2n["vae_decodes"] == 2 and in2n["unet_evals"] in (18, 21, 24)
     # Random-weight Depth Anything explains nothing of the scene's depth: its calibration is rejected

@@ -494,11 +494,17 @@ def test_scattered_region_rows_stay_tracked_through_densify_and_prune(tmp_path, 
     assert m["mask_iou_exact_masks"] >= 0.85  # and rendered through them into exact 2D masks
 
 
-def test_moved_densify_keys_name_their_new_place():
+def test_moved_refine_keys_name_their_new_place(tmp_path, capsys):
     from gs_regional.config import ConfigError, parse_structured
 
     with pytest.raises(ConfigError, match="system.refine.densify_every' has moved: use 'system.densify.every'"):
         parse_structured(RegionalEdit.Config, {"refine": {"densify_every": 50}}, where="system")
+    with pytest.raises(ConfigError, match="reedit_first_view' has moved: use 'system.refine.first_cycle_first_view"):
+        parse_structured(RegionalEdit.Config, {"refine": {"reedit_first_view": False}}, where="system")
+    argv = ["--config", str(ROOT / "configs/demo.yaml"), "--train", f"exp_root_dir={tmp_path}",
+            "system.refine.first_cycle_first_view=again"]
+    assert main(argv) != 0
+    assert "system.refine.first_cycle_first_view must be skip or reedit or full, got 'again'" in capsys.readouterr().err
 
 
 def test_an_addition_leaves_the_colours_of_the_source_gaussians(tmp_path):
@@ -548,35 +554,51 @@ def test_longer_refinement_densifies_no_more_often(tmp_path):
     assert doubled["psnr_outside_vs_true_edit"] >= base["psnr_outside_vs_true_edit"] - 0.3
 
 
-def test_the_first_cycle_edits_the_first_view_again_from_the_initialized_scene(tmp_path, monkeypatch):
+def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an_addition(tmp_path, monkeypatch):
     """The first full edit (from pure noise) is the edit the editor shifts the most from view to
     view; taken as the first cycle's target of its view, it pulled the new object towards its own
     offset against the neighbours' partial edits (truth suite 549446 c14, a big ball on the head:
-    40.4 dB outside the true footprint, 43.5 with the view edited again; docs/results.md). The
-    first view is now edited a second time, from the render after initialization at the cycle's
-    start timestep (one partial edit more); `refine.reedit_first_view=false` keeps the full edit as
-    its target, as a recolour does."""
+    40.4 dB outside the true footprint, 43.5 with the view edited again; docs/results.md). By
+    default (`refine.first_cycle_first_view=skip`) an addition's first cycle trains on the first
+    view's neighbours only, with no partial edit more than `full`; `reedit` edits the first view
+    again from the render after initialization (one partial edit more); `full` takes the full
+    edit as its target, as a recolour always does."""
     from gs_regional.sim.editor import SimulatedEditor
+    from gs_regional.systems.regional_edit import RegionalEdit
 
     edit, partial_seeds = SimulatedEditor._edit, []
+    edit_views, targets = RegionalEdit.edit_cycle_views, []
 
     def recording(self, images, cond_images, prompt, t_start, seeds, cameras):
         if t_start is not None:
             partial_seeds.extend(seeds)
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
+    def recording_views(self, cycle):
+        edit_views(self, cycle)
+        targets.extend(self.cycle_views)
+
     monkeypatch.setattr(SimulatedEditor, "_edit", recording)
+    monkeypatch.setattr(RegionalEdit, "edit_cycle_views", recording_views)
     short = [*COMMON, "system.localization.max_views=8", "system.refine.cycles=1", "system.refine.iterations_per_cycle=3",
              "system.refine.m=2"]
     runs = {}
-    for name, extra in (("again", []), ("full", ["system.refine.reedit_first_view=false"]),
+    for name, extra in (("skip", []), ("again", ["system.refine.first_cycle_first_view=reedit"]),
+                        ("full", ["system.refine.first_cycle_first_view=full"]),
                         ("recolour", ["data.edit=recolor", "system.prompt=make his head red"])):
         partial_seeds.clear()
+        targets.clear()
         m = metrics_of(launch(tmp_path, name, "configs/demo.yaml", *short, *extra))
         # The cycle's partial edits, by view: each view's seed is seed + 1000 (cycle + 1) + view.
-        runs[name] = (m, sorted(s - 1000 for s in partial_seeds))  # configs/demo.yaml: seed 0
-    (again, edited_again), (full, edited_full), (recolour, edited_recolour) = runs["again"], runs["full"], runs["recolour"]
-    assert again["v_first"] == full["v_first"] and again["v_first"] in edited_again  # edited again in cycle 1
-    assert again["v_first"] not in edited_full and recolour["v_first"] not in edited_recolour
-    assert len(edited_again) == 3 and len(edited_full) == 2  # the m=2 neighbours (+ the first view)
-    assert again["unet_evals"] > full["unet_evals"]  # the cost: one partial edit
+        runs[name] = (m, sorted(s - 1000 for s in partial_seeds), list(targets))  # configs/demo.yaml: seed 0
+    first = runs["skip"][0]["v_first"]
+    assert all(m["v_first"] == first for m, _, _ in runs.values() if m is not runs["recolour"][0])
+    (skip, edited_skip, targets_skip), (again, edited_again, targets_again) = runs["skip"], runs["again"]
+    (full, edited_full, targets_full), (recolour, edited_recolour, targets_recolour) = runs["full"], runs["recolour"]
+    assert first not in targets_skip and len(targets_skip) == 2  # the m=2 neighbours only
+    assert targets_again[0] == targets_full[0] == first and targets_recolour[0] == recolour["v_first"]
+    assert targets_skip == targets_again[1:] == targets_full[1:]
+    assert first in edited_again and first not in edited_full and first not in edited_skip  # edited again
+    assert recolour["v_first"] not in edited_recolour
+    assert len(edited_again) == 3 and len(edited_full) == len(edited_skip) == 2
+    assert again["unet_evals"] > full["unet_evals"] == skip["unet_evals"]  # the cost: one partial edit

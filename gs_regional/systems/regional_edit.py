@@ -31,6 +31,7 @@ from gs_regional.systems.edit_base import EditSystemBase
 
 log = logging.getLogger(__name__)
 
+FIRST_VIEW_TARGETS = ("skip", "reedit", "full")  # refine.first_cycle_first_view
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
 # A first edit whose change (beyond the editor's noise) is under this fraction of another view's
 # shows nothing of the edit: the region is hidden there (run_initialize).
@@ -95,6 +96,7 @@ class RefineConfig:
     MOVED_KEYS: ClassVar[Dict[str, str]] = {
         "densify": "system.densify.enabled", "densify_every": "system.densify.every",
         "grad_threshold": "system.densify.grad_threshold", "densify_budget": "system.densify.budget",
+        "reedit_first_view": "system.refine.first_cycle_first_view (skip | reedit | full)",
     }
     cycles: int = 3
     t_schedule: List[int] = field(default_factory=lambda: [750, 500, 250])  # start timestep per cycle
@@ -106,18 +108,23 @@ class RefineConfig:
     # into a smear). Recolours lose with less noise, so they keep `t_schedule` (docs/method.md).
     shape_t_schedule: Optional[List[int]] = field(default_factory=lambda: [450, 350, 250])
     constant_t: Optional[int] = None  # ablation: one start timestep for every cycle
-    # An edit that may change the shape: the first cycle edits its frontal view (the first edited
-    # view) again, from the render of the scene after initialization at the cycle's start
-    # timestep, like its neighbours, instead of taking the first full edit as that view's target.
+    # The first cycle's target for its frontal view (the first edited view) in an edit that may
+    # change the shape (a recolour always takes the first full edit):
+    #   "skip"   none: the view gives initialization its depth, its m neighbours' partial edits
+    #            are the cycle's targets (it counts as edited for later cycles; with m = 0 it
+    #            takes the full edit);
+    #   "reedit" a partial edit of the render after initialization at the cycle's start timestep,
+    #            like its neighbours (one partial edit more: 27 UNet evaluations at t=450);
+    #   "full"   the first full edit itself.
     # A full edit from pure noise places the edit the farthest from where the other views put it
     # (the editor's per-view shift is largest there), and as a target it pulled the new object
-    # towards its own offset against the other views, which training averaged into a soft, wide
-    # silhouette (docs/results.md).
-    # The full edit still gives initialization its depth. Costs one partial edit (27 UNet
-    # evaluations at t=450); dropping the farthest neighbour instead to keep the cost lost up to
-    # 5.7 dB of gain. A recolour keeps the full edit: re-edited, a patch a few pixels across lost
-    # 5.6 dB (549446 c09).
-    reedit_first_view: bool = True
+    # towards its own offset, which training averaged into a soft, wide silhouette: "reedit" gained
+    # up to 3 dB outside the true footprint on big balls. "skip" removes that pull at no cost and
+    # matched "reedit" on two fresh draws at 2-3 run seeds a case (paired median gain +0.10 / -0.15
+    # dB, outside -0.28 / +0.11 dB), with 27 UNet evaluations fewer an addition (docs/results.md).
+    # Dropping the farthest neighbour instead lost up to 5.7 dB of gain; a recolour re-edited lost
+    # 5.6 dB on a patch a few pixels across (549446 c09).
+    first_cycle_first_view: str = "skip"
     iterations_per_cycle: int = 500
     m: int = 20  # nearest cameras edited around the cycle's frontal view
     # The frontal view of cycles after the first: "random" (the paper: any edited view) or
@@ -286,6 +293,8 @@ class RegionalEdit(EditSystemBase):
 
         need(r.cycles >= 1, "refine.cycles", "an integer >= 1", r.cycles)
         need(r.iterations_per_cycle >= 1, "refine.iterations_per_cycle", "an integer >= 1", r.iterations_per_cycle)
+        need(r.first_cycle_first_view in FIRST_VIEW_TARGETS, "refine.first_cycle_first_view",
+             " or ".join(FIRST_VIEW_TARGETS), r.first_cycle_first_view)
         need(r.m >= 0, "refine.m", "an integer >= 0 (views edited around each cycle's frontal view)", r.m)
         need(0 <= r.composite_full_coverage <= 1, "refine.composite_full_coverage", "a fraction in [0, 1]",
              r.composite_full_coverage)
@@ -717,9 +726,12 @@ class RegionalEdit(EditSystemBase):
                 frontal = frontier_view(scene.cameras, self.edited_views, r.m, scene.train_indices, gen)
             else:  # the paper's choice
                 frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
-        full_edit_is_target = cycle == 0 and not (r.reedit_first_view and self.shape_may_change)
+        first_view = r.first_cycle_first_view if self.shape_may_change else "full"
+        full_edit_is_target = cycle == 0 and first_view == "full"
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
+        if cycle == 0 and first_view == "skip" and near:  # (m = 0: the first view is all there is)
+            views = near  # the first view stays among the edited views (set at initialization)
 
         def targets(ks: List[int]) -> torch.Tensor:
             # Every view is edited from a render of the same scene state, so all go to the editor in
