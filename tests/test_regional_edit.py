@@ -585,14 +585,16 @@ def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an
     runs = {}
     for name, extra in (("skip", []), ("again", ["system.refine.first_cycle_first_view=reedit"]),
                         ("full", ["system.refine.first_cycle_first_view=full"]),
-                        ("recolour", ["data.edit=recolor", "system.prompt=make his head red"])):
+                        ("recolour", ["data.edit=recolor", "system.prompt=make his head red"]),
+                        ("alone", ["system.refine.m=0"])):
         partial_seeds.clear()
         targets.clear()
         m = metrics_of(launch(tmp_path, name, "configs/demo.yaml", *short, *extra))
         # The cycle's partial edits, by view: each view's seed is seed + 1000 (cycle + 1) + view.
         runs[name] = (m, sorted(s - 1000 for s in partial_seeds), list(targets))  # configs/demo.yaml: seed 0
     first = runs["skip"][0]["v_first"]
-    assert all(m["v_first"] == first for m, _, _ in runs.values() if m is not runs["recolour"][0])
+    assert all(runs[k][0]["v_first"] == first for k in ("again", "full", "alone"))
+    assert runs["alone"][1:] == ([], [first])  # m = 0: skip has nothing to train on; the full edit is the target
     (skip, edited_skip, targets_skip), (again, edited_again, targets_again) = runs["skip"], runs["again"]
     (full, edited_full, targets_full), (recolour, edited_recolour, targets_recolour) = runs["full"], runs["recolour"]
     assert first not in targets_skip and len(targets_skip) == 2  # the m=2 neighbours only

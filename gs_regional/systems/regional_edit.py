@@ -726,11 +726,13 @@ class RegionalEdit(EditSystemBase):
                 frontal = frontier_view(scene.cameras, self.edited_views, r.m, scene.train_indices, gen)
             else:  # the paper's choice
                 frontal = self.edited_views[int(torch.randint(len(self.edited_views), (1,), generator=gen))]
-        first_view = r.first_cycle_first_view if self.shape_may_change else "full"
-        full_edit_is_target = cycle == 0 and first_view == "full"
         near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
         views = [frontal] + near  # in order of distance
-        if cycle == 0 and first_view == "skip" and near:  # (m = 0: the first view is all there is)
+        first_view = r.first_cycle_first_view if self.shape_may_change else "full"
+        if first_view == "skip" and not near:
+            first_view = "full"  # m = 0: the first view is all the first cycle has
+        full_edit_is_target = cycle == 0 and first_view == "full"
+        if cycle == 0 and first_view == "skip":
             views = near  # the first view stays among the edited views (set at initialization)
 
         def targets(ks: List[int]) -> torch.Tensor:
