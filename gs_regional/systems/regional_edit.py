@@ -120,7 +120,7 @@ class RefineConfig:
     # (the editor's per-view shift is largest there), and as a target it pulled the new object
     # towards its own offset, which training averaged into a soft, wide silhouette: "reedit" gained
     # up to 3 dB outside the true footprint on big balls. "skip" removes that pull at no cost and
-    # matched "reedit" on two fresh draws at 2-3 run seeds a case (paired median gain +0.10 / -0.15
+    # matched "reedit" on 925517 (tuned on) and fresh 219221, 3 / 2 run seeds a case (paired median gain +0.10 / -0.15
     # dB, outside -0.28 / +0.11 dB), with 27 UNet evaluations fewer an addition (docs/results.md).
     # Dropping the farthest neighbour instead lost up to 5.7 dB of gain; a recolour re-edited lost
     # 5.6 dB on a patch a few pixels across (549446 c09).
