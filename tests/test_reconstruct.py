@@ -15,14 +15,16 @@ from gs_regional.launch import main
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = str(ROOT / "configs" / "reconstruct.yaml")
 
-# The face scene at 32x32 px, 16 of its 65 cameras (2 held out), densifying every 30 steps so that
-# the number of Gaussians changes before and after step 100.
+# The face scene at 32x32 px, 16 of its 65 cameras (2 held out), 120 steps, densifying every 20 so
+# that the number of Gaussians changes before and after the cut at step HALF; the SH degree rises
+# every HALF steps.
+STEPS, HALF = 120, 60
 FACE_SMALL = [
     "data.downscale=16", "data.max_cameras=16",
-    "system.max_steps=200", "system.sh_degree=3", "system.sh_degree_every=100",
-    "system.densify.start=30", "system.densify.every=30", "system.densify.stop=1000",
+    f"system.max_steps={STEPS}", "system.sh_degree=3", f"system.sh_degree_every={HALF}",
+    "system.densify.start=20", "system.densify.every=20", "system.densify.stop=1000",
     "system.densify.opacity_reset_every=0",
-    "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false",
+    f"checkpoint.every_n_train_steps={HALF}", "trainer.enable_progress_bar=false",
 ]
 
 
@@ -42,15 +44,15 @@ def geometry_state(ckpt):
 
 @pytest.fixture(scope="module")
 def face_runs(tmp_path_factory):
-    """An uninterrupted 200-step fit, and one stopped at step 100 then resumed to 200."""
+    """An uninterrupted fit of STEPS steps, and one stopped at step HALF then resumed to STEPS."""
     face = str(shared_path("face"))
     tmp = tmp_path_factory.mktemp("reconstruct")
     full = launch(tmp, "full", f"data.source={face}", *FACE_SMALL)
-    half = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, "trainer.max_steps=100")
-    at_100 = geometry_state(os.path.join(half, "ckpts", "last.ckpt"))
+    half = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"trainer.max_steps={HALF}")
+    at_half = geometry_state(os.path.join(half, "ckpts", "last.ckpt"))
     resumed = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"resume={os.path.join(half, 'ckpts', 'last.ckpt')}")
     assert resumed == half  # resuming reuses the trial dir
-    return {"full": full, "resumed": resumed, "at_100": at_100}
+    return {"full": full, "resumed": resumed, "at_half": at_half}
 
 
 def test_fit_writes_metrics_and_ply(face_runs):
@@ -58,8 +60,8 @@ def test_fit_writes_metrics_and_ply(face_runs):
     m = metrics_of(trial)
     for key in ("psnr_test", "ssim_test", "n_gaussians", "seconds"):
         assert key in m, f"metrics.json lacks {key}: {m}"
-    assert m["steps"] == 200 and m["held_out"] and m["test_views"] == 2  # cameras 0 and 8 of 16
-    # 200 steps already fit the held-out views far better than a flat grey image would.
+    assert m["steps"] == STEPS and m["held_out"] and m["test_views"] == 2  # cameras 0 and 8 of 16
+    # STEPS steps already fit the held-out views far better than a flat grey image would.
     assert m["psnr_test"] > 17.0 and 0.5 < m["ssim_test"] <= 1.0
     assert m["seconds"] > 0
     ply = ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))
@@ -70,8 +72,8 @@ def test_fit_writes_metrics_and_ply(face_runs):
 
 
 def test_progressive_sh_degree(face_runs):
-    """Degree 1 is trained from step 100; degrees 2 (from step 200) and 3 never were: their
-    coefficients are still exactly zero."""
+    """Degree 1 is trained from step HALF; degrees 2 (from step 2 HALF = STEPS) and 3 never were:
+    their coefficients are still exactly zero."""
     ply = ply_arrays(os.path.join(face_runs["full"], "save", "reconstructed.ply"))
     rest = np.stack([ply[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15)  # INRIA: channel-major
     assert np.abs(rest[:, :, :3]).max() > 1e-4
@@ -81,10 +83,10 @@ def test_progressive_sh_degree(face_runs):
 def test_resume_across_densification_matches_uninterrupted(face_runs):
     full = geometry_state(os.path.join(face_runs["full"], "ckpts", "last.ckpt"))
     resumed = geometry_state(os.path.join(face_runs["resumed"], "ckpts", "last.ckpt"))
-    n_100 = face_runs["at_100"]["geometry.means"].shape[0]
-    n_200 = full["geometry.means"].shape[0]
-    assert n_100 != 9875 and n_200 != n_100, "densification should change the count before and after step 100"
-    assert metrics_of(face_runs["resumed"])["steps"] == 200
+    n_half = face_runs["at_half"]["geometry.means"].shape[0]
+    n_end = full["geometry.means"].shape[0]
+    assert n_half != 9875 and n_end != n_half, "densification should change the count before and after the cut"
+    assert metrics_of(face_runs["resumed"])["steps"] == STEPS
     for key, value in full.items():
         other = resumed[key]
         assert other.shape == value.shape, f"{key}: {tuple(other.shape)} != {tuple(value.shape)}"
@@ -139,6 +141,6 @@ def test_export_rewrites_the_outputs_from_a_checkpoint(face_runs, capsys):
             f"resume={os.path.join(trial, 'ckpts', 'last.ckpt')}"]
     assert main(argv) == 0
     after = metrics_of(trial)
-    assert after["steps"] == 200 and 0 < after["seconds"] <= before["seconds"]  # the fit's time, not the export's
+    assert after["steps"] == STEPS and 0 < after["seconds"] <= before["seconds"]  # the fit's time, not the export's
     assert after["psnr_test"] == pytest.approx(before["psnr_test"], abs=1e-4)
     assert len(ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))["x"]) == before["n_gaussians"]

@@ -215,14 +215,24 @@ def test_metrics_json_has_the_region_aware_scores(runs, tmp_path):
     assert metrics_of(get_run(runs, "in2n", "configs/in2n.yaml"))["gaussians_added"] == 0
 
 
-def test_depth_initialization_improves_the_add_edit(tmp_path):
+# The demo at its resolution with short refinement (10 steps a cycle), for the tests that compare
+# it with one setting changed.
+SHORT = ["trainer.enable_progress_bar=false", "system.eval.turntable_frames=2", "system.eval.max_test_views=5",
+         "system.refine.iterations_per_cycle=10"]
+
+
+def get_short_run(runs, name, *overrides):
+    if name not in runs["trials"]:
+        runs["trials"][name] = launch(runs["tmp"], name, "configs/demo.yaml", *SHORT, *overrides)
+    return runs["trials"][name]
+
+
+def test_depth_initialization_improves_the_add_edit(runs):
     """At the demo resolution and the same (short) refinement, the depth-initialized Gaussians give
     a better PSNR against the true edit than refining the localized Gaussians alone. (With long
     refinement in the simulator the run without initialization catches up: see the README.)"""
-    short = ["trainer.enable_progress_bar=false", "system.eval.turntable_frames=2", "system.eval.max_test_views=5",
-             "system.refine.iterations_per_cycle=10"]
-    with_init = metrics_of(launch(tmp_path, "init", "configs/demo.yaml", *short))
-    without = metrics_of(launch(tmp_path, "no-init", "configs/demo.yaml", *short, "system.initialize=false"))
+    with_init = metrics_of(get_short_run(runs, "short"))
+    without = metrics_of(get_short_run(runs, "short-no-init", "system.initialize=false"))
     print(f"PSNR vs true edit: with init {with_init['psnr_vs_true_edit']:.2f}, without {without['psnr_vs_true_edit']:.2f}")
     assert with_init["count_added_init"] > 0 and without["count_added_init"] == 0
     assert with_init["psnr_vs_true_edit"] > without["psnr_vs_true_edit"] + 0.5
@@ -507,17 +517,15 @@ def test_moved_refine_keys_name_their_new_place(tmp_path, capsys):
     assert "system.refine.first_cycle_first_view must be skip or reedit or full, got 'again'" in capsys.readouterr().err
 
 
-def test_an_addition_leaves_the_colours_of_the_source_gaussians(tmp_path):
+def test_an_addition_leaves_the_colours_of_the_source_gaussians(runs):
     """An edit that only adds (the demo's moustache) keeps every parameter of the selected source
     Gaussians: the added ones draw the object. Free, their colours learnt each edited view's
     jittered copy of the moustache: on the demo, outside the true footprint 48.1 dB against 51.9
     kept, and 46.1 dB against 52.0 with twice the refinement (docs/results.md). With
     refine.min_recoloured_fraction=0 the colours train, so the test can tell the two apart."""
-    short = ["trainer.enable_progress_bar=false", "system.eval.turntable_frames=2", "system.eval.max_test_views=3",
-             "system.refine.iterations_per_cycle=10"]
     source = make_edit("add").source
-    for name, extra, keeps in (("adds", [], True), ("free", ["system.refine.min_recoloured_fraction=0"], False)):
-        trial = launch(tmp_path, name, "configs/demo.yaml", *short, *extra)
+    for name, extra, keeps in (("short", [], True), ("short-free", ["system.refine.min_recoloured_fraction=0"], False)):
+        trial = get_short_run(runs, name, *extra)
         m = metrics_of(trial)
         assert m["count_added_init"] > 0
         assert m["init"]["recoloured_fraction"] < 0.3
@@ -580,6 +588,8 @@ def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an
 
     monkeypatch.setattr(SimulatedEditor, "_edit", recording)
     monkeypatch.setattr(RegionalEdit, "edit_cycle_views", recording_views)
+    # An edit renders its source itself: the synthetic scene's photos are never rendered for it.
+    monkeypatch.setattr("gs_regional.sim.scene._cached_source_images", lambda *key: pytest.fail("an edit read the photos"))
     short = [*COMMON, "system.localization.max_views=8", "system.refine.cycles=1", "system.refine.iterations_per_cycle=3",
              "system.refine.m=2"]
     runs = {}

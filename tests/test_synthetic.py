@@ -1,6 +1,4 @@
 """The procedural scene, its cameras, its ground-truth edits and the `synthetic-scene` data module."""
-import time
-
 import pytest
 import torch
 
@@ -14,6 +12,7 @@ from gs_regional.sim.scene import (
     EDIT_NAMES,
     OBJECT_PARTS,
     SyntheticDataModule,
+    _cached_source_images,
     make_cameras,
     make_edit,
     make_scene,
@@ -208,10 +207,11 @@ def test_datamodule(tmp_path):
     assert cls is SyntheticDataModule
     cfg = {"edit": "add", "n_cameras": 10, "width": 40, "height": 40, "test_every": 4}
     dm = cls(cfg)
-    t = time.time()
+    _cached_source_images.cache_clear()
     dm.setup("fit")
-    first = time.time() - t
     s = dm.scene
+    # Setting up renders no photo (an edit never reads them); the first read renders every view.
+    assert _cached_source_images.cache_info().currsize == 0
     assert len(s.cameras) == 10 and len(s.images) == 10
     assert s.images[0].shape == (40, 40, 3) and 0 <= s.images[0].min() and s.images[0].max() <= 1
     assert s.test_indices == [0, 4, 8] and s.train_indices == [1, 2, 3, 5, 6, 7, 9]
@@ -230,12 +230,13 @@ def test_datamodule(tmp_path):
     assert [int(b["index"]) for b in dm.val_dataloader()] == s.test_indices
     assert [int(b["index"]) for b in dm.test_dataloader()] == s.test_indices
 
+    assert _cached_source_images.cache_info().misses == 1
     # a second module with the same config reuses the cached renders
-    t = time.time()
     dm2 = cls(cfg)
     dm2.setup("test")
-    assert time.time() - t < max(0.5 * first, 1.0)
     assert torch.equal(dm2.scene.images[5], s.images[5])
+    assert _cached_source_images.cache_info().misses == 1
+    assert len(s.images[2:5]) == 3 and torch.equal(s.images[2:5][1], s.images[3])
     dm2.scene.images[5].zero_()  # modules do not share image tensors
     assert s.images[5].abs().sum() > 0
 

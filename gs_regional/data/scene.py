@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, List, Optional
+from typing import TYPE_CHECKING, List, Optional, Sequence
 
 import torch
 
@@ -15,7 +15,7 @@ if TYPE_CHECKING:  # for the annotation only: data/ sits below the simulators an
 @dataclass
 class SceneData:
     cameras: List[Camera]  # all cameras, at the working resolution
-    images: Optional[List[torch.Tensor]] = None  # (H, W, 3) in [0, 1] per camera, or None
+    images: Optional[Sequence[torch.Tensor]] = None  # (H, W, 3) in [0, 1] per camera, or None
     train_indices: List[int] = field(default_factory=list)
     test_indices: List[int] = field(default_factory=list)
     # SfM points for scenes without a trained splat: (xyz (N,3), rgb (N,3)) or None

@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
@@ -440,6 +440,22 @@ def _cached_source_images(seed: int, n_object: int, n_background: int, n_cameras
     return tuple(r["rgb"].clamp(0, 1) for r in render_views(model, cameras, background))
 
 
+class _RenderedPhotos(Sequence):
+    """The scene's photos, rendered from the procedural scene when first read: an edit renders
+    its source itself and never reads them (a reconstruction does), so an edit run skips the
+    renders of every view. Each read gives a copy: a caller cannot change the cached renders."""
+
+    def __init__(self, count: int, render_all: Callable[[], Tuple[torch.Tensor, ...]]) -> None:
+        self._count, self._render_all = count, render_all
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __getitem__(self, i):
+        images = self._render_all()
+        return [im.clone() for im in images[i]] if isinstance(i, slice) else images[i].clone()
+
+
 @register("synthetic-scene")
 class SyntheticDataModule(SceneDataModuleBase):
     """Renders of the procedural scene, with the ground-truth edit in `scene.ground_truth`.
@@ -471,9 +487,9 @@ class SyntheticDataModule(SceneDataModuleBase):
             return
         c = self.cfg
         cameras, _ = make_cameras(c.n_cameras, c.width, c.height, c.seed)
-        images = _cached_source_images(c.seed, c.n_object, c.n_background, c.n_cameras, c.width, c.height,
-                                       tuple(float(v) for v in c.background))
+        key = (c.seed, c.n_object, c.n_background, c.n_cameras, c.width, c.height, tuple(float(v) for v in c.background))
+        images = _RenderedPhotos(len(cameras), lambda: _cached_source_images(*key))
         train, test = split_every(len(cameras), c.test_every)
         truth = make_edit(c.edit, seed=c.seed, n_object=c.n_object, n_background=c.n_background)
-        self.scene = SceneData(cameras=cameras, images=[im.clone() for im in images], train_indices=train,
+        self.scene = SceneData(cameras=cameras, images=images, train_indices=train,
                                test_indices=test, ground_truth=truth, source=f"synthetic:{c.edit}")
