@@ -171,7 +171,9 @@ def metrics(trial):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("parallel")
-    one, _ = launch(out, "one")
+    # One process needs no launcher: in this process (a Python start-up fewer than a subprocess).
+    assert main(["--config", DEMO, "--train", f"exp_root_dir={out}", "name=one", *SMALL]) == 0
+    one = trial_of(out, "one")
     two, stdout = launch(out, "two", *TWO)
     return {"out": out, "one": one, "two": two, "two_stdout": stdout}
 
