@@ -614,3 +614,18 @@ def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an
     assert recolour["v_first"] not in edited_recolour
     assert len(edited_again) == 3 and len(edited_full) == len(edited_skip) == 2
     assert again["unet_evals"] > full["unet_evals"] == skip["unet_evals"]  # the cost: one partial edit
+
+
+def test_changed_gaussians_report_of_an_addition(runs):
+    """scripts/changed_gaussians.py on the demo's addition: the true region's Gaussians are split
+    into editable and left out, and an addition changes none of their colours."""
+    import changed_gaussians
+
+    trial = get_run(runs, "regional")
+    rep = changed_gaussians.report(trial)
+    region = int(make_edit("add").region.sum())
+    inside, outside, left_out = (rep[k] for k in ("editable, in the true region", "editable, outside it",
+                                                  "in the true region, left out"))
+    assert inside["gaussians"] + left_out["gaussians"] == region and inside["gaussians"] > 0.5 * region
+    assert inside["changed colour"] == outside["changed colour"] == 0  # an addition keeps source colours
+    assert inside["mean colour error vs truth"] < 1e-3  # the truth's source rows keep theirs too
