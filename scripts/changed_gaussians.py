@@ -12,32 +12,35 @@ import argparse
 import os
 import sys
 
-import numpy as np
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
 def report(trial: str, min_change: float = 0.02) -> dict:
-    import torch
-    from omegaconf import OmegaConf
+    from pathlib import Path
 
-    import gs_regional.sim  # noqa: F401  registers the simulated scenes
+    import torch
+
+    from gs_regional.config import load_config
     from gs_regional.geometry.gaussian_model import GaussianModel
-    from gs_regional.registry import find
+    from gs_regional.launch.view import read_edit_rows
+    from gs_regional.registry import find, load_builtins
     from gs_regional.utils.sh import sh_to_rgb
 
-    cfg = OmegaConf.load(os.path.join(trial, "configs", "parsed.yaml"))
-    dm = find(cfg.data_type)(OmegaConf.to_container(cfg.data, resolve=True))
+    load_builtins()
+    cfg = load_config(os.path.join(trial, "configs", "parsed.yaml"))
+    dm = find(cfg.data_type, kind="data")(cfg.data)
     dm.setup("fit")
     gt = dm.scene.ground_truth
     if gt is None:
         raise SystemExit(f"{trial}: its scene ({cfg.data_type}) has no ground truth")
-    rows = np.load(os.path.join(trial, "save", "edit_mask.npz"))
     out = GaussianModel.from_ply(os.path.join(trial, "save", "edited.ply"))
+    rows, where = read_edit_rows(Path(trial), out.num_gaussians)
+    if rows is None:
+        raise SystemExit(f"{trial}: {where}")
     kept = torch.as_tensor(rows["generation"]) == 0  # source rows (added ones have no source colour)
     src = torch.as_tensor(rows["source_index"])[kept]
-    editable = torch.as_tensor(rows["mask"])[kept]
+    editable = torch.as_tensor(rows["mask"]).bool()[kept]
     rgb = sh_to_rgb(out.sh_dc.detach())[kept]
     rgb_source = sh_to_rgb(gt.source.sh_dc.detach())[src]
     # The true edit's colours of the source rows (an addition appends its object after them).

@@ -128,7 +128,7 @@ def _data_config_without_photos(data_cls: Any, data_cfg: Any) -> Any:
     return data_cfg
 
 
-def _read_mask(trial: Path, n_edited: int) -> Tuple[Optional[Dict[str, np.ndarray]], str]:
+def read_edit_rows(trial: Path, n_edited: int) -> Tuple[Optional[Dict[str, np.ndarray]], str]:
     """(mask, generation, source_index) rows of edited.ply, and where they come from."""
     path = trial / "save" / EDIT_MASK_FILE
     if path.is_file():
@@ -182,7 +182,7 @@ def load_trial(trial_dir: Any, custom_dir: Any = None) -> Trial:
     else:
         raise ViewError(f"{parsed}: no source scene: system.geometry.ply is not set and data '{cfg.data_type}' has none")
 
-    rows, mask_note = _read_mask(trial, edited.num_gaussians)
+    rows, mask_note = read_edit_rows(trial, edited.num_gaussians)
     edited_mask = source_mask = None
     if rows is not None:
         edited_mask = rows["mask"].astype(bool) | (rows["generation"] > 0)
