@@ -46,9 +46,10 @@ and which cases miss which target:
   deleted; Gaussians added <= 2x the truth's (a recolour: fewer than 1 % of its region).
 
 Budget (the default, full): 24 cameras at 64², localization on 8 views, 3 refinement cycles x 60
-iterations with 6 views each, 2 turntable frames, no checkpoints: 24 cases in about 11 min on this
-2-core CPU shared with other jobs (seed 159258: 675 s, the face fit's 36 s included; a donut case
-70-95 s, a face case about 25 s, a synthetic one about 15 s), well inside 30 min.
+iterations with 6 views each, 2 turntable frames, no checkpoints: 24 cases in about 17 min on one
+core of this 2-core CPU (seed 26164 at the nineteenth session's code, --threads 1: a donut case
+about 2 min, a face case 45 s, a synthetic one 22 s), inside 30 min; two halves side by side
+(--only) take about half that. Seed 159258 at the fifth session's code: 675 s on both cores.
 --quick (a test runs it; about 15 s): 3 cases on synthetic scenes only, 16 cameras at 48², one
 refinement cycle of 10 iterations.
 --replot redraws the chart and the distribution from OUT/truth_suite.json without running.
