@@ -9,7 +9,7 @@ from gs_regional.registry import RegistryError
 
 
 def input_error_types() -> Tuple[Type[BaseException], ...]:
-    """The typed errors of the readers (and of a checkpoint written to a full disk): each message
+    """The typed errors of the readers (and of a checkpoint or trial folder the disk refuses): each message
     names the file (or model) at fault."""
     from gs_regional.data.colmap import ColmapError
     from gs_regional.data.images import ImageLoadError
@@ -18,11 +18,12 @@ def input_error_types() -> Tuple[Type[BaseException], ...]:
     from gs_regional.data.points import PointsError
     from gs_regional.geometry.ply import PlyError
     from gs_regional.launch.checkpoints import CheckpointError, DiskFullError
+    from gs_regional.launch.trial import OutputDirError
     from gs_regional.utils.io import OverwriteError
     from gs_regional.utils.pretrained import PretrainedLoadError
 
     return (PlyError, ColmapError, TransformsError, CameraLoadError, ImageLoadError, PointsError,
-            PretrainedLoadError, OverwriteError, CheckpointError, DiskFullError)
+            PretrainedLoadError, OverwriteError, CheckpointError, DiskFullError, OutputDirError)
 
 
 def is_user_error(e: BaseException) -> bool:

@@ -24,7 +24,7 @@ from gs_regional.launch.modes import STAGES, run_mode
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
 from gs_regional.launch.sections import section_configs
 from gs_regional.launch.summary import RunInfo, print_summary
-from gs_regional.launch.trial import TrialLock, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
+from gs_regional.launch.trial import TrialLock, check_writable, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
 from gs_regional.registry import find, load_builtins
 from gs_regional.systems import parallel
 
@@ -171,6 +171,8 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
         # `check_inputs`, e.g. the PLY's header), then the system with its priors.
         dm_cls = find(cfg.data_type, kind="data", key="data_type")
         system_cls = find(cfg.system_type, kind="systems", key="system_type")
+        if follower is None and not resume:
+            check_writable(Path(cfg.exp_root_dir))  # a read-only output folder fails before any load
         datamodule = dm_cls(cfg.data)
         datamodule.setup(STAGES[mode])
         if hasattr(system_cls, "check_inputs"):

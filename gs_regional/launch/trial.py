@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import logging
 import os
 import shutil
@@ -19,17 +20,48 @@ def now_timestamp() -> str:
     return datetime.datetime.now().strftime(TIMESTAMP_FORMAT)
 
 
+class OutputDirError(OSError):
+    """The trial folder cannot be created (a read-only file system, no permission, a full disk):
+    the user's to fix, by pointing `exp_root_dir=` at a writable folder."""
+
+    def __str__(self) -> str:
+        return self.strerror  # one line naming the folder, without "[Errno N]"
+
+
+def check_writable(folder: Path) -> None:
+    """Raise OutputDirError unless `folder`, or its nearest existing parent, may be written."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not os.access(existing, os.W_OK | os.X_OK):
+        code = errno.EROFS if _read_only_mount(existing) else errno.EACCES
+        raise OutputDirError(code, f"the trial folder {folder} cannot be created: {os.strerror(code).lower()} "
+                                   f"({existing}); set exp_root_dir= to a writable folder")
+
+
+def _read_only_mount(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
 def _claim_dir(base: Path) -> Path:
     """Create `base`, or `base-1`, `base-2`, ... if it exists: never reuse an existing trial dir."""
-    base.parent.mkdir(parents=True, exist_ok=True)
     candidate, n = base, 0
-    while True:
-        try:
-            candidate.mkdir()  # atomic: two launches in the same second get different dirs
-            return candidate
-        except FileExistsError:
-            n += 1
-            candidate = base.with_name(f"{base.name}-{n}")
+    try:
+        base.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            try:
+                candidate.mkdir()  # atomic: two launches in the same second get different dirs
+                return candidate
+            except FileExistsError:
+                n += 1
+                candidate = base.with_name(f"{base.name}-{n}")
+    except OSError as e:
+        reason = os.strerror(e.errno).lower() if e.errno else str(e)
+        raise OutputDirError(e.errno, f"the trial folder {candidate} cannot be created: {reason}; "
+                                      "set exp_root_dir= to a writable folder") from e
 
 
 def path_component(key: str, value: str) -> str:
