@@ -96,6 +96,7 @@ FLOORS = {
     "systems": 7,
     "launch": 8, "api": 8,
     "testing": 9,  # random-weight model folders for tests and benchmarks
+    "bench": 10,  # benchmarks, the truth suite and the GPU checks: shared by scripts/ and the tests
 }
 
 

@@ -1,32 +1,35 @@
-"""scripts/truth_suite.py: known edits drawn at random from a printed seed. The draw alone is
-checked for reproducibility and coverage; the 3-case quick run (synthetic scenes only, so it never
-needs ../shared/data) runs end to end and writes the JSON and the chart. The quick mode is a check
-of the script, not a measurement."""
+"""The truth suite (gs_regional/bench/truth/, scripts/truth_suite.py): known edits drawn at random
+from a printed seed. The draw alone is checked for reproducibility and coverage; the 3-case quick
+run (synthetic scenes only, so it never needs ../shared/data) runs end to end and writes the JSON
+and the chart. The quick mode is a check of the script, not a measurement."""
 import json
 import statistics
 
 import pytest
-import truth_suite
+
+from gs_regional.bench.truth import cases as truth_cases
+from gs_regional.bench.truth import cli, compare, report
+from gs_regional.bench.truth import run as suite
 
 SEED = 11
 
 
 def test_the_same_seed_draws_the_same_cases():
-    assert truth_suite.draw(SEED, 24) == truth_suite.draw(SEED, 24)
-    assert truth_suite.draw(SEED, 3, quick=True) == truth_suite.draw(SEED, 3, quick=True)
-    assert truth_suite.draw(SEED, 24) != truth_suite.draw(SEED + 1, 24)
+    assert truth_cases.draw(SEED, 24) == truth_cases.draw(SEED, 24)
+    assert truth_cases.draw(SEED, 3, quick=True) == truth_cases.draw(SEED, 3, quick=True)
+    assert truth_cases.draw(SEED, 24) != truth_cases.draw(SEED + 1, 24)
 
 
 def test_a_full_draw_covers_the_scenes_and_kinds():
-    cases = truth_suite.draw(12345, 24)
+    cases = truth_cases.draw(12345, 24)
     assert len(cases) == 24 and len({c["id"] for c in cases}) == 24
     scenes = [c["scene"] for c in cases]
     assert scenes.count("donut") == 4 and scenes.count("face") == 4
     assert len({s for s in scenes if s.startswith("synthetic:")}) >= 5
-    for kind in truth_suite.KINDS:
+    for kind in truth_cases.KINDS:
         assert sum(c["kind"] == kind for c in cases) == 6, kind
     for scene in ("donut", "face"):
-        assert sorted(c["kind"] for c in cases if c["scene"] == scene) == sorted(truth_suite.KINDS)
+        assert sorted(c["kind"] for c in cases if c["scene"] == scene) == sorted(truth_cases.KINDS)
     for c in cases:
         assert len(c["color"]) == 3 and all(0 <= v <= 1 for v in c["color"])
         if c["kind"].startswith("add") and not c["native"]:
@@ -38,31 +41,31 @@ def test_a_full_draw_covers_the_scenes_and_kinds():
 
 
 def test_an_unseeded_draw_prints_its_seed_and_that_seed_redraws_it(capsys):
-    assert truth_suite.main(["--draw-only"]) == 0
+    assert cli.main(["--draw-only"]) == 0
     first = capsys.readouterr().out.splitlines()
     seed = int(first[0].split("seed: ")[1].split()[0])
-    assert truth_suite.main(["--draw-only", "--seed", str(seed)]) == 0
+    assert cli.main(["--draw-only", "--seed", str(seed)]) == 0
     assert capsys.readouterr().out.splitlines() == first
-    assert [json.loads(line) for line in first[1:]] == truth_suite.draw(seed, 24)
+    assert [json.loads(line) for line in first[1:]] == truth_cases.draw(seed, 24)
 
 
 def test_a_subset_of_a_draw_is_its_cases_as_drawn_and_an_unknown_id_is_named():
-    cases = truth_suite.draw(SEED, 24)
-    picked = truth_suite.select_cases(cases, only=["c07", "c02"])
+    cases = truth_cases.draw(SEED, 24)
+    picked = suite.select_cases(cases, only=["c07", "c02"])
     assert [c["id"] for c in picked] == ["c02", "c07"] and picked == [cases[1], cases[6]]
-    recolours = truth_suite.select_cases(cases, kinds=["recolor"])
+    recolours = suite.select_cases(cases, kinds=["recolor"])
     assert len(recolours) == 12 and all(c["kind"].startswith("recolor_") for c in recolours)
-    assert truth_suite.select_cases(cases, only=["c02", "c07"], kinds=["add"]) == [
+    assert suite.select_cases(cases, only=["c02", "c07"], kinds=["add"]) == [
         c for c in (cases[1], cases[6]) if c["kind"].startswith("add_")]
     with pytest.raises(SystemExit, match="c31"):
-        truth_suite.select_cases(cases, only=["c02", "c31"], seed=SEED)
+        suite.select_cases(cases, only=["c02", "c31"], seed=SEED)
 
 
 def test_another_size_scales_the_views_and_the_face_photos_alike():
-    assert truth_suite.settings(False)["size"] == 64 and truth_suite.settings(True)["size"] == 48
-    big = truth_suite.settings(False, 128)
-    assert big["size"] == 128 and big["face_downscale"] == truth_suite.FACE_DOWNSCALE / 2
-    assert big["budget"] == truth_suite.settings(False)["budget"]  # the same edit, more pixels
+    assert truth_cases.settings(False)["size"] == 64 and truth_cases.settings(True)["size"] == 48
+    big = truth_cases.settings(False, 128)
+    assert big["size"] == 128 and big["face_downscale"] == truth_cases.FACE_DOWNSCALE / 2
+    assert big["budget"] == truth_cases.settings(False)["budget"]  # the same edit, more pixels
 
 
 def test_targets_name_the_cases_that_miss_them():
@@ -71,7 +74,7 @@ def test_targets_name_the_cases_that_miss_them():
                 "mask_iou": 0.95, "stopped": stopped, "source_deleted": 0, "gaussians_added": added,
                 "true_added": 100, "region_gaussians": 1000}
 
-    result = {name: (met, bad) for name, met, _, bad in truth_suite.targets([
+    result = {name: (met, bad) for name, met, _, bad in report.targets([
         rec(1, "recolor_small", 12.0, 55.0), rec(2, "add_small", -1.0, 44.0, added=300),
         rec(3, "recolor_large", 11.0, 52.0, stopped="view_agreement", added=50)])}
     assert result["gain > 0 dB, every case"] == (False, ["c2"])
@@ -82,23 +85,23 @@ def test_targets_name_the_cases_that_miss_them():
     assert result["no stopped run"] == (False, ["c3"])
     assert result["Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)"] == (False, ["c2", "c3"])
     # a run of the additions alone has no recolour to hold the recolours' target to
-    only_adds = {name: met for name, met, _, _ in truth_suite.targets([rec(2, "add_small", 7.0, 50.0, added=100)])}
+    only_adds = {name: met for name, met, _, _ in report.targets([rec(2, "add_small", 7.0, 50.0, added=100)])}
     assert only_adds["median gain of the recolours >= +10 dB"] is None and only_adds["median gain >= +6 dB"] is True
 
 
 def test_quick_run_writes_records_and_chart(tmp_path, capsys):
-    assert truth_suite.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path)]) == 0
+    assert cli.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert f"truth suite seed: {SEED}" in out and "targets:" in out and "| gain (dB) |" in out
     payload = json.loads((tmp_path / "truth_suite.json").read_text())
     assert payload["seed"] == SEED and payload["quick"] is True and payload["left_out"] == []
     records = payload["records"]
-    drawn = truth_suite.draw(SEED, 3, quick=True)
+    drawn = truth_cases.draw(SEED, 3, quick=True)
     assert [(r["id"], r["scene"], r["kind"]) for r in records] == [(c["id"], c["scene"], c["kind"]) for c in drawn]
     for r in records:
         assert not r.get("error"), r
         assert r["scene"].startswith("synthetic:")
-        for key in truth_suite.METRIC_KEYS:
+        for key in truth_cases.METRIC_KEYS:
             assert key in r, key
         for key in ("psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
                     "psnr_unedited", "mask_iou", "mask_iou_exact_masks", "gaussians_added", "true_gaussians_added", "source_deleted",
@@ -108,16 +111,16 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
         assert r["true_gaussians_added"] == r["true_added"] and r["region_gaussians"] > 0 and r["prompt"]
         assert r["unet_evals"] > 0 and r["wall_seconds"] > 0 and r["overrides"]
         if r["kind"].startswith("add"):  # the part an object is put on holds at least its count
-            assert r["region_to_added"] >= truth_suite.MIN_REGION_TO_ADDED, r
+            assert r["region_to_added"] >= truth_cases.MIN_REGION_TO_ADDED, r
     png = tmp_path / "truth_suite.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     # --replot redraws from the JSON alone
     png.unlink()
-    assert truth_suite.main(["--replot", "--out", str(tmp_path)]) == 0
+    assert cli.main(["--replot", "--out", str(tmp_path)]) == 0
     assert png.exists()
     # --only re-runs one case of the draw as it ran in the whole draw
     part = tmp_path / "part"
-    assert truth_suite.main(["--quick", "--seed", str(SEED), "--only", "c02", "--out", str(part)]) == 0
+    assert cli.main(["--quick", "--seed", str(SEED), "--only", "c02", "--out", str(part)]) == 0
     again = json.loads((part / "truth_suite.json").read_text())
     assert again["only"] == ["c02"] and [r["id"] for r in again["records"]] == ["c02"]
     for key in ("psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "mask_iou", "gaussians_added", "unet_evals"):
@@ -126,7 +129,7 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
     # (run 0 is the draw's own); --compare sets it against the single run case by case
     capsys.readouterr()
     rep = tmp_path / "rep"
-    assert truth_suite.main(["--quick", "--seed", str(SEED), "--only", "c02", "--repeats", "2", "--out", str(rep),
+    assert cli.main(["--quick", "--seed", str(SEED), "--only", "c02", "--repeats", "2", "--out", str(rep),
                              "--compare", str(part)]) == 0
     twice = json.loads((rep / "truth_suite.json").read_text())
     runs = twice["records"][0]["repeats"]
@@ -149,13 +152,13 @@ def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path)
     outside the footprint than at 1, and no source Gaussian is deleted either way."""
     runs = {}
     for scale in (1, 3):
-        payload = truth_suite.run_suite(536750, 24, False, str(tmp_path / f"scale{scale}"),
+        payload = suite.run_suite(536750, 24, False, str(tmp_path / f"scale{scale}"),
                                         [f"system.refine.added_position_lr_scale={scale}"], only=["c18"])
         (r,) = payload["records"]
         assert r["kind"] == "add_large" and r["source_deleted"] == 0
         runs[scale] = r
     slow, fast = runs[1], runs[3]
-    assert truth_suite.gain(fast) > truth_suite.gain(slow) + 0.5
+    assert truth_cases.gain(fast) > truth_cases.gain(slow) + 0.5
     assert fast["psnr_outside_vs_true_edit"] > slow["psnr_outside_vs_true_edit"] + 2.0
 
 
@@ -169,7 +172,7 @@ def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
                                                     rec("c02", 5.0, 50.0, [(4.9, 49.9), (5.1, 50.1)])]}
     after = {"seed": 5, "repeats": 2, "records": [rec("c01", 6.0, 51.0, [(5.0, 50.0), (7.0, 52.0)]),
                                                    rec("c02", 9.0, 40.0, [(8.9, 39.0), (9.1, 41.0)])]}
-    rows = truth_suite.compare_report(before, after)
+    rows = compare.compare_report(before, after)
     out = capsys.readouterr().out
     assert rows == [{"id": "c01", "gain": 1.0, "psnr_outside_vs_true_edit": 1.0},
                     {"id": "c02", "gain": 4.0, "psnr_outside_vs_true_edit": -10.0}]
@@ -184,10 +187,25 @@ def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
 
 def test_a_suite_wide_seed_override_is_the_runs_seed():
     case = {"run_seed": 41, "overrides": ["data.seed=3", "seed=41", "tag=add_small", "seed=7"]}
-    assert truth_suite.run_seed(case) == 7
-    assert truth_suite.run_seed({"run_seed": 41, "overrides": ["seed=41", "tag=add_small"]}) == 41
+    assert truth_cases.run_seed(case) == 7
+    assert truth_cases.run_seed({"run_seed": 41, "overrides": ["seed=41", "tag=add_small"]}) == 41
     # runs at another seed are not paired with the draw's own
     before = {"c01": {"run_seed": 41, "overrides": ["seed=41"], "gain": 5.0}}
     after = {"c01": {"run_seed": 41, "overrides": ["seed=41", "seed=7"], "gain": 6.0}}
-    assert truth_suite.paired_differences(before, after, ["c01"], "gain") == []
-    assert truth_suite.paired_differences(before, before, ["c01"], "gain") == [0.0]
+    assert compare.paired_differences(before, after, ["c01"], "gain") == []
+    assert compare.paired_differences(before, before, ["c01"], "gain") == [0.0]
+
+
+def test_localize_only_ends_every_run_after_localization(tmp_path, monkeypatch):
+    """--localize-only is the `system.stop_after=localize` mode, after the suite's own overrides."""
+    seen = {}
+
+    def fake_run_suite(seed, n, quick, out, overrides, *rest):
+        seen["overrides"] = overrides
+        return {"seed": seed, "records": []}
+
+    monkeypatch.setattr(cli, "run_suite", fake_run_suite)
+    monkeypatch.setattr(cli, "chart", lambda payload, path: None)
+    monkeypatch.setattr(cli, "print_report", lambda payload: [])
+    assert cli.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path), "--localize-only", "seed=3"]) == 0
+    assert seen["overrides"] == ["seed=3", "system.stop_after=localize"] == ["seed=3", cli.LOCALIZE_ONLY]

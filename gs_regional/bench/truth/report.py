@@ -1,0 +1,172 @@
+"""The targets of a truth suite, its printed report (the cases, the distribution, which case misses
+which target) and its chart."""
+from __future__ import annotations
+
+import statistics
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from gs_regional.bench import sweeps
+from gs_regional.bench.truth.cases import KINDS, gain, spread
+
+def _ratio_added(r: dict) -> Optional[float]:
+    if r.get("gaussians_added") is None:
+        return None
+    if r["kind"].startswith("add"):
+        return r["gaussians_added"] / max(r.get("true_added") or r.get("true_gaussians_added") or 1, 1)
+    return r["gaussians_added"] / max(r.get("region_gaussians") or 1, 1)
+
+
+MET_WORDS = {True: "ok", False: "FAIL", None: "n/a"}
+
+
+def targets(records: Sequence[dict]) -> List[Tuple[str, Optional[bool], str, List[str]]]:
+    """(target, met, the figure, failing case ids) of each target; met is None where no case is of
+    the kind it is about."""
+    ok = [r for r in records if not r.get("error")]
+    failed_runs = [r["id"] for r in records if r.get("error")]
+
+    def per_case(name, test):
+        bad = [r["id"] for r in ok if not test(r)] + failed_runs
+        return (name, not bad, f"{len(ok) - len(bad) + len(failed_runs)}/{len(records)} cases", bad)
+
+    def median_of(name, values, limit):
+        vals = [v for v in values if v is not None]
+        if not vals:  # e.g. the recolours' target of a run of the additions alone
+            return (name, None, "no such case", [])
+        med = statistics.median(vals)
+        return (name, med >= limit, f"median {sweeps.fmt(med)}", [])
+
+    g = lambda r: r["gain"] if r.get("gain") is not None else float("-inf")  # noqa: E731
+    recolours = [r for r in ok if r["kind"].startswith("recolor")]
+    return [
+        per_case("gain > 0 dB, every case", lambda r: g(r) > 0),
+        median_of("median gain >= +6 dB", [r["gain"] for r in ok], 6.0),
+        median_of("median gain of the recolours >= +10 dB", [r["gain"] for r in recolours], 10.0),
+        per_case("outside-footprint PSNR >= 45 dB, every case", lambda r: (r["psnr_outside_vs_true_edit"] or 0) >= 45),
+        median_of("median outside-footprint PSNR >= 50 dB", [r["psnr_outside_vs_true_edit"] for r in ok], 50.0),
+        per_case("unedited PSNR >= 50 dB, every case", lambda r: (r["psnr_unedited"] or 0) >= 50),
+        median_of("median mask IoU >= 0.9", [r["mask_iou"] for r in ok], 0.9),
+        per_case("no stopped run", lambda r: not r.get("stopped")),
+        per_case("no source Gaussian deleted", lambda r: r.get("source_deleted") == 0),
+        per_case("Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)",
+                 lambda r: _ratio_added(r) is not None and (_ratio_added(r) <= 2.0 if r["kind"].startswith("add")
+                                                            else _ratio_added(r) < 0.01)),
+    ]
+
+
+DISTRIBUTION = (
+    ("gain (dB)", gain),
+    ("footprint PSNR vs truth (dB)", lambda r: r.get("psnr_region_vs_true_edit")),
+    ("footprint PSNR doing nothing (dB)", lambda r: r.get("psnr_region_source_vs_true_edit")),
+    ("outside-footprint PSNR (dB)", lambda r: r.get("psnr_outside_vs_true_edit")),
+    ("unedited PSNR (dB)", lambda r: r.get("psnr_unedited")),
+    ("mask IoU", lambda r: r.get("mask_iou")),
+    ("mask IoU (seen)", lambda r: r.get("mask_iou_seen")),
+    ("mask IoU from exact 2D masks", lambda r: r.get("mask_iou_exact_masks")),
+    ("added / truth's added (adds)", lambda r: _ratio_added(r) if r["kind"].startswith("add") else None),
+    ("added / region (recolours)", lambda r: _ratio_added(r) if r["kind"].startswith("recolor") else None),
+    ("region / true added (adds)", lambda r: r.get("region_to_added") if r["kind"].startswith("add") else None),
+    ("source Gaussians deleted", lambda r: r.get("source_deleted")),
+    ("UNet evaluations", lambda r: r.get("unet_evals")),
+    ("seconds (all stages)", lambda r: r.get("seconds_total")),
+    ("wall seconds", lambda r: r.get("wall_seconds")),
+)
+
+
+def seed_spreads(records: Sequence[dict]) -> Dict[str, List[float]]:
+    """Per figure (gain, outside), each repeated case's max - min over its runs."""
+    out = {}
+    for name, key in (("gain", "gain"), ("outside", "psnr_outside_vs_true_edit")):
+        v = [sp[1] - sp[0] for sp in (spread(r, key) for r in records if not r.get("error")) if sp]
+        if v:
+            out[name] = v
+    return out
+
+
+def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
+    records = payload["records"]
+    print(f"\ntruth suite: seed {payload['seed']} ({len(records)} cases"
+          f"{', quick' if payload.get('quick') else ''}; rerun this draw with --seed {payload['seed']})")
+    if payload.get("left_out"):
+        print("LEFT OUT: " + "; ".join(payload["left_out"]))
+    print("\n| case | kind | scene | prompt | gain dB | outside dB | unedited dB | IoU | added (truth) | s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in records:
+        head = f"| {r['id']} | {r['kind']} | {r['scene']}{' (own edit)' if r.get('native') else ''} | {r.get('prompt', '')} |"
+        if r.get("error"):
+            print(f"{head} failed: {r['error']} | | | | | |")
+            continue
+        truth = r.get("true_added") if r["kind"].startswith("add") else f"region {r.get('region_gaussians')}"
+        stop = f" STOPPED ({r['stopped']})" if r.get("stopped") else ""
+        rng = lambda key: "" if spread(r, key) is None else " ({} to {})".format(*map(sweeps.fmt, spread(r, key)))  # noqa: E731
+        print(f"{head} {sweeps.fmt(r['gain'])}{rng('gain')}{stop} | {sweeps.fmt(r['psnr_outside_vs_true_edit'])}"
+              f"{rng('psnr_outside_vs_true_edit')} | "
+              f"{sweeps.fmt(r['psnr_unedited'])} | {sweeps.fmt(r['mask_iou'])} | {r['gaussians_added']} ({truth}) | "
+              f"{sweeps.fmt(r.get('wall_seconds'))} |")
+    print("\n| metric | n | min | median | max |")
+    print("| --- | --- | --- | --- | --- |")
+    for name, f in DISTRIBUTION:
+        vals = [f(r) for r in records if not r.get("error")]
+        vals = [float(v) for v in vals if v is not None]
+        if vals:
+            print(f"| {name} | {len(vals)} | {min(vals):.3g} | {statistics.median(vals):.3g} | {max(vals):.3g} |")
+    spreads = seed_spreads(records)
+    if spreads:
+        print(f"\n{payload.get('repeats')} runs a case (run seeds +0..+{payload.get('repeats', 1) - 1}): each figure above is "
+              "their median, the range in brackets; " + "; ".join(
+                  f"{name} spread (max - min) median {statistics.median(v):.2f}, max {max(v):.2f} dB"
+                  for name, v in spreads.items()))
+    result = targets(records)
+    print("\ntargets" + (" (on each case's median run)" if spreads else "") + ":")
+    for name, met, figure, bad in result:
+        print(f"  [{MET_WORDS[met]}] {name}: {figure}" + (f"; missed by {', '.join(bad)}" if bad else ""))
+    return result
+
+
+def chart(payload: dict, path: str) -> None:
+    """Per-case gain and outside-footprint PSNR, each sorted, coloured by kind, targets drawn."""
+    plt = sweeps.pyplot()
+    records = [r for r in payload["records"] if not r.get("error")]
+    colors = dict(zip(KINDS, ("tab:orange", "tab:red", "tab:blue", "tab:purple")))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
+    panels = ((axes[0], "gain", "gain in the footprint vs doing nothing (dB)",
+               ((0.0, "every case > 0"), (6.0, "median >= +6"), (10.0, "median of the recolours >= +10"))),
+              (axes[1], "psnr_outside_vs_true_edit", "PSNR outside the footprint (dB)",
+               ((45.0, "every case >= 45"), (50.0, "median >= 50"))))
+    for ax, key, label, lines in panels:
+        rows = sorted((r for r in records if r.get(key) is not None), key=lambda r: r[key])
+        xs = range(len(rows))
+        ax.bar(xs, [r[key] for r in rows], color=[colors[r["kind"]] for r in rows],
+               edgecolor=["black" if r.get("stopped") else "none" for r in rows])
+        ranges = [spread(r, key) for r in rows]
+        if any(ranges):  # --repeats: each bar is a case's median run, the whisker its runs' range
+            ax.errorbar(list(xs), [r[key] for r in rows], fmt="none", ecolor="black", elinewidth=0.8, capsize=2,
+                        yerr=[[r[key] - (sp or (r[key],))[0] for r, sp in zip(rows, ranges)],
+                              [(sp or (0, r[key]))[1] - r[key] for r, sp in zip(rows, ranges)]])
+        stopped = [(x, r[key]) for x, r in zip(xs, rows) if r.get("stopped")]
+        if stopped:  # a stop leaves the source: gain 0, invisible as a bar
+            ax.scatter(*zip(*stopped), marker="x", color="black", zorder=4, s=40)
+        ax.set_xticks(list(xs))
+        ax.set_xticklabels([r["id"] for r in rows], rotation=90, fontsize=7)
+        for y, text in lines:
+            ax.axhline(y, color="black", ls="--" if "median" in text else "-", lw=1)
+            ax.text(0, y, f" target: {text}", va="bottom", fontsize=8)
+        if rows:
+            med = statistics.median(r[key] for r in rows)
+            ax.axhline(med, color="tab:green", lw=1.5, alpha=0.8)
+            ax.text(len(rows) - 1, med, f"median {med:.1f}", va="bottom", ha="right", color="tab:green", fontsize=8)
+        if key != "gain" and rows:  # PSNRs: from a little below the lowest target or value
+            ax.set_ylim(min(40.0, rows[0][key] - 3), max(55.0, rows[-1][key] + 3))
+        ax.set_ylabel(label)
+        ax.set_xlabel("case (sorted)")
+        ax.grid(axis="y", alpha=0.3)
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()]
+    handles.append(plt.Line2D([], [], marker="x", color="black", ls=""))
+    axes[0].legend(handles, list(colors) + ["stopped (source kept)"], fontsize=8, loc="upper left",
+                   bbox_to_anchor=(0, 0.9))
+    runs = payload.get("repeats", 1)
+    fig.suptitle(f"truth suite, seed {payload['seed']}: {len(records)} known edits (simulated editor and depth)"
+                 + (f"; each bar the median of {runs} runs (run seeds), the whisker their range" if runs > 1 else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
