@@ -210,7 +210,7 @@ def render_comparison(ctx: dict, n: Optional[int] = None, size: Optional[int] = 
     differences of the renders and of every gradient of a weighted rgb loss."""
     import torch
 
-    from bench_renderer import make_scene
+    from gs_regional.bench.renderer import make_scene
     from gs_regional.registry import find
 
     device = ctx["device"]
@@ -372,7 +372,7 @@ def bench_pipeline_argv(ctx: dict) -> List[str]:
 
 
 def check_bench_pipeline(ctx: dict) -> dict:
-    import bench_pipeline
+    from gs_regional.bench import pipeline as bench_pipeline
 
     try:
         report = bench_pipeline.main(bench_pipeline_argv(ctx))
@@ -392,7 +392,7 @@ def check_bench_pipeline(ctx: dict) -> dict:
 
 
 def donut_argv(ctx: dict) -> List[str]:
-    import bench_pipeline
+    from gs_regional.bench import pipeline as bench_pipeline
 
     s, priors, side = ctx["schedule"], ctx["priors"], ctx["resolution"]
     argv = ["--config", os.path.join(ROOT, "configs", "donut_add.yaml"), "--train",

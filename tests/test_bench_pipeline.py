@@ -1,4 +1,4 @@
-"""scripts/bench_pipeline.py in its tiny mode: the whole regional edit and the in2n baseline through
+"""scripts/bench_pipeline.py (gs_regional/bench/pipeline.py) in its tiny mode: the whole regional edit and the in2n baseline through
 launch.py with InstructPix2Pix and Depth Anything loaded by from_pretrained from (tiny, random)
 folders, on the CPU, with a small budget; and the JSON it writes."""
 import json
@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-
-from bench_pipeline import resample_gaussians
+from gs_regional.bench.pipeline import resample_gaussians
 from gs_regional.sim.scene import make_scene
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # The synthetic scene resampled to 4000 Gaussians; 4 localization views, 2 cycles of 4 steps
 # editing the frontal view and its 2 nearest, 4 DDIM steps (the same start timesteps whether or not
@@ -28,8 +28,7 @@ def report(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bench_pipeline")
     cmd = [sys.executable, str(ROOT / "scripts" / "bench_pipeline.py"), "--models", "tiny", "--out", str(tmp / "out"),
            "--models-dir", str(tmp / "priors"), "--device", "cpu", *BUDGET]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     with open(tmp / "out" / "bench_pipeline.json") as f:
         return json.load(f), done.stdout

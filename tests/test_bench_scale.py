@@ -1,6 +1,5 @@
-"""scripts/bench_scale.py runs end to end and writes the JSON other tools read."""
+"""scripts/bench_scale.py (gs_regional/bench/scale.py) runs end to end and writes the JSON other tools read."""
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,8 +12,7 @@ def test_bench_scale_quick_writes_json_and_table(tmp_path):
     # --quick sizes (10k, 30k); small images and few views keep this a check, not a measurement
     cmd = [sys.executable, str(ROOT / "scripts" / "bench_scale.py"), "--quick", "--out", str(tmp_path),
            "--render-size", "96", "--localize-views", "3", "--localize-size", "64"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads((tmp_path / "bench_scale.json").read_text())
     assert list(results) == STAGES

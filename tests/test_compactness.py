@@ -1,8 +1,9 @@
-"""scripts/compactness.py --quick runs end to end: compactness.json with one record per
+"""scripts/compactness.py (gs_regional/bench/compactness.py) --quick runs end to end: compactness.json with one record per
 run, the knee of each knob among the swept runs, and the chart. The quick mode is a check of the
 script, not a measurement."""
-import compactness
 from trial_helpers import run_quick
+
+from gs_regional.bench import compactness
 
 
 def test_compactness_quick_writes_records_knees_and_chart(tmp_path):

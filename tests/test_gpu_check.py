@@ -326,8 +326,8 @@ def test_dtype_auto_resolution(tiny_models, monkeypatch):
 def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped(tmp_path, monkeypatch):
     """Random weights stop a real edit after localization (seen on the H200): the check turns the safe
     stops off so that every stage is timed, and a run that stops anyway is a failure, not a timing."""
-    import bench_pipeline
     import gs_regional.launch as launch
+    from gs_regional.bench import pipeline as bench_pipeline
 
     donut = tmp_path / "donut.ply"
     donut.write_bytes(b"ply")  # only its presence is checked before the (faked) launch

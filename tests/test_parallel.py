@@ -133,7 +133,7 @@ def test_a_gpu_list_this_machine_does_not_have_is_refused(tmp_path, capsys):
 
 
 def test_bench_parallel_reports_each_stage_against_one_process():
-    import bench_parallel
+    from gs_regional.bench import parallel as bench_parallel
 
     def run(k, localize, edit):
         return {"processes": k, "wall_seconds": 10.0, "unet_evals": 489, "vae_encodes": 47, "vae_decodes": 18,

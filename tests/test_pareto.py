@@ -1,7 +1,8 @@
-"""scripts/pareto.py --quick runs end to end: pareto.json with one record per run
+"""scripts/pareto.py (gs_regional/bench/pareto.py) --quick runs end to end: pareto.json with one record per run
 and the metrics of §1, and the chart. The quick mode is a check of the script, not a measurement."""
-import pareto
 from trial_helpers import run_quick
+
+from gs_regional.bench import pareto, sweeps
 
 
 def test_pareto_quick_writes_records_and_chart(tmp_path):
@@ -31,4 +32,4 @@ def test_pareto_quick_writes_records_and_chart(tmp_path):
 
 def test_pareto_front_keeps_only_undominated_points():
     pts = [(3.0, 10.0), (1.0, 5.0), (2.0, 4.0), (4.0, 9.0), (5.0, 12.0)]
-    assert pareto.sweeps.pareto_front(pts) == [(1.0, 5.0), (3.0, 10.0), (5.0, 12.0)]
+    assert sweeps.pareto_front(pts) == [(1.0, 5.0), (3.0, 10.0), (5.0, 12.0)]

@@ -619,7 +619,7 @@ def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an
 def test_changed_gaussians_report_of_an_addition(runs):
     """scripts/changed_gaussians.py on the demo's addition: the true region's Gaussians are split
     into editable and left out, and an addition changes none of their colours."""
-    import changed_gaussians
+    from gs_regional.bench import changed_gaussians
 
     trial = get_run(runs, "regional")
     rep = changed_gaussians.report(trial)

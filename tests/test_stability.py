@@ -1,12 +1,12 @@
-"""scripts/stability.py --quick runs end to end: stability.json with the records,
+"""scripts/stability.py (gs_regional/bench/stability.py) --quick runs end to end: stability.json with the records,
 the break table and the charts; and the safe path of an instruction about nothing (the views
 disagree about the region: the run warns and writes the source unchanged)."""
 from pathlib import Path
 
 import numpy as np
-
-import stability
 from trial_helpers import ply_arrays, run_quick
+
+from gs_regional.bench import stability
 from gs_regional.sim.scene import make_edit
 
 
