@@ -158,7 +158,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     the edges of the unedited parts outweigh a small edit inside the region, and the safe stop
     ("edit outside the region") fired on correct edits. Known answer: a small recolour inside the
     region, the rest of the view only blurred: (almost) all of the change is in the region."""
-    from gs_regional.edit.composite import edit_change, real_change
+    from gs_regional.edit.change import edit_change, real_change
 
     gen = torch.Generator().manual_seed(0)
     h = w = 64
@@ -183,7 +183,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
 
 
 def test_components_labels_each_8_connected_blob_once():
-    from gs_regional.edit.composite import components
+    from gs_regional.utils.image import components
 
     mask = torch.zeros(6, 7, dtype=torch.bool)
     mask[0, 0] = mask[1, 1] = True  # diagonal neighbours: one blob
@@ -199,7 +199,7 @@ def test_components_agrees_with_a_flood_fill_on_random_masks():
     largest pixel index; and a one-pixel-wide serpentine (the longest path) is one blob."""
     from collections import deque
 
-    from gs_regional.edit.composite import components
+    from gs_regional.utils.image import components
 
     def flood(mask):
         h, w = mask.shape
@@ -243,7 +243,7 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     region; not when it is another part beside it at the region's depth (an edit of that part),
     and not when it lies behind but touches the region's margin at a corner only (an object
     placed off the part: the stability sweep's 16 px position jitter, which should stop)."""
-    from gs_regional.edit.composite import edit_change
+    from gs_regional.edit.change import edit_change
 
     gen = torch.Generator().manual_seed(0)
     h = w = 48
@@ -340,7 +340,7 @@ def test_recoloured_fraction_tells_an_addition_from_an_addition_that_recolours()
     new object and drifted the longer refinement ran. Known answers on one regenerated (blurred,
     noisy, tone-shifted) view: a dark object drawn on the head recolours nothing beside it; the
     same object on a head turned green recolours all of the rest; a head half green, half."""
-    from gs_regional.edit.composite import recoloured_fraction
+    from gs_regional.edit.change import recoloured_fraction
 
     gen = torch.Generator().manual_seed(0)
     source, region = _head_on_body(gen)
@@ -389,7 +389,7 @@ def test_edit_blend_tells_the_recoloured_area_from_the_colour_spilled_beside_it(
     """Known answer: inside the recoloured disc every pixel takes the edit whatever its texture
     (blend about 1); beside it, the spilled colour is at most half of the edit's (the simulator's
     bleed strength 0.5), and far from it nothing changed (0)."""
-    from gs_regional.edit.composite import edit_blend
+    from gs_regional.edit.change import edit_blend
 
     source, edited, area, ring = _spilled_recolour()
     blend = edit_blend(edited, source)
@@ -580,7 +580,8 @@ def test_the_recolour_gate_takes_a_part_a_few_pixels_across_and_declines_a_large
     soft edge: its own Gaussians take under half of the edit's nearby colour, so a fixed 0.5
     declined all of it (the face patches of 14-53 Gaussians that came out unchanged); relative to
     its best Gaussians it is taken, and the Gaussians beyond 2 px of it are still declined."""
-    from gs_regional.edit.composite import edit_blend, recoloured
+    from gs_regional.edit.change import edit_blend
+    from gs_regional.edit.composite import recoloured
 
     for size in (16, 2):
         source, edited, part, ring = _recolour_views(size)

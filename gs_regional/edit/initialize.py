@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
+from gs_regional.edit.change import match_colors, real_change
 from gs_regional.geometry.neighbors import quantile_box, within_radius
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh
@@ -56,30 +57,6 @@ def median_filter(x: torch.Tensor, k: int) -> torch.Tensor:
     r = k // 2
     p = F.pad(x[None, None], (r, r, r, r), mode="replicate")
     return p.unfold(2, k, 1).unfold(3, k, 1).reshape(*x.shape, k * k).median(-1).values
-
-
-def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Tensor,
-                 max_gain: Optional[float] = None) -> torch.Tensor:
-    """Per-channel gain and offset fitted (least squares on `pixels`) to map `image` onto
-    `reference`: a full 2D edit re-generates the whole view and shifts its tone, which is not a
-    change of the region. `max_gain`: the gain is kept within [1 / max_gain, max_gain] (and the
-    offset fitted for it), for pixels whose narrow range of colours could not tell a gain that
-    holds for the whole view."""
-    # Closed form in float64 (not a LAPACK solve, whose last bits can depend on memory alignment:
-    # a view edited alone and in a batch must give the same target).
-    x, y = image[pixels].double(), reference[pixels].double()  # (K, 3)
-    out = torch.empty_like(image)
-    for c in range(3):
-        dx, dy = x[:, c] - x[:, c].mean(), y[:, c] - y[:, c].mean()
-        if float(dx.std()) < 1e-3:  # no contrast to fit a gain on: shift only
-            gain, offset = 1.0, float((y[:, c] - x[:, c]).mean())
-        else:
-            gain = float((dx * dy).sum() / (dx * dx).sum())
-            if max_gain is not None:
-                gain = min(max(gain, 1.0 / max_gain), max_gain)
-            offset = float(y[:, c].mean() - gain * x[:, c].mean())
-        out[..., c] = image[..., c] * gain + offset
-    return out.clamp(0, 1)
 
 
 def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -345,8 +322,6 @@ def new_gaussians_from_depth(
         # would drop the object), they take the depth of the geometry beside them: the part's and
         # the accepted new pixels' depth, carried out from them. A few far pixels at a larger
         # object's edge are still dropped: the object's own pixels cover it better.
-        from gs_regional.edit.composite import real_change  # (composite imports match_colors from here)
-
         shows_edit = real_change(edited, unedited, calib_px, cfg.noise_sigmas, explain_blur=False)[0] > 0
         moved = ~near & shows_edit[pixels[:, 0], pixels[:, 1]]
         expected_shown = float((depth_changed & shows_edit)[calib_px].float().mean()) * int(region.sum())

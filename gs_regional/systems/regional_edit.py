@@ -9,9 +9,8 @@ from typing import ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.composite import (
-    MIN_OBJECT_BLEND, composite_target, distinct_parts, edit_blend, edit_change, recoloured, recoloured_fraction,
-)
+from gs_regional.edit.change import edit_blend, edit_change, recoloured_fraction
+from gs_regional.edit.composite import MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, new_gaussians_from_depth
 from gs_regional.edit.localize import (
     expand_selection, localize_gaussians, mask_agreement, render_selection, splat_selection,
