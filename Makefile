@@ -34,13 +34,14 @@ browser:
 test: install browser
 	$(PY) -m pytest -q -n auto --dist loadfile tests
 
-# Known edits drawn at random (scripts/truth_suite.py): a fresh seed each time, printed;
-# `make truth-suite SEED=N` redraws the cases of seed N.
+# Known edits drawn at random (scripts/truth_suite.py, gs_regional/bench/truth/): a fresh seed
+# each time, printed; `make truth-suite SEED=N` redraws the cases of seed N.
 SEED ?=
 truth-suite: install
 	$(PY) scripts/truth_suite.py $(if $(SEED),--seed $(SEED))
 
-# First contact with a GPU (scripts/gpu_check.py): one table in under 10 minutes, written as JSON
+# First contact with a GPU (scripts/gpu_check.py): the CUDA-marked tests of tests/gpu/ run with
+# pytest and their results summarised in one table in under 10 minutes, written as JSON
 # (GPU_CHECK_OUT). Without CUDA it says so in one line and fails. gsplat (the `gsplat` extra of
 # setup.py) is installed here when it does not import; `make test` never installs it.
 GPU_CHECK_OUT ?= outputs/gpu_check/gpu_check.json

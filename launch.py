@@ -14,10 +14,8 @@ if __name__ == "__main__":
     # Idle OpenMP threads must sleep, not spin: on a small shared CPU spinning threads make every
     # parallel torch op stall (10-40x slower renders). Must be set before torch is imported.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    # Run from a checkout without installing: the package lives beside this file.
+    # `python launch.py` puts this folder first on sys.path: gs_regional imports from the checkout.
     here = os.path.dirname(os.path.abspath(__file__))
-    if here not in sys.path:
-        sys.path.insert(0, here)
     from gs_regional.launch import main
 
     sys.exit(main(sys.argv[1:], custom_dir=os.path.join(here, "custom")))

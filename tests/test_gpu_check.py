@@ -1,7 +1,8 @@
-"""scripts/gpu_check.py (`make gpu-check`) without a GPU: the one-line refusal, the runner (rows,
-failures, time limits, the budget), the table and JSON, and what of its checks runs on a CPU: the
-float16 / bfloat16 InstructPix2Pix path on the tiny models, `dtype: auto`, the render comparison."""
-import importlib.util
+"""`make gpu-check` (scripts/gpu_check.py, gs_regional/bench/gpu_report.py) without a GPU: the one-line
+refusal, the GPU checks as tests (tests/gpu/: skipped saying why; each outcome of a check read back
+from pytest's report as its row, time limits, the budget), the table and JSON, and what of the
+checks (gs_regional/bench/gpu_checks.py) runs on a CPU: the float16 / bfloat16 InstructPix2Pix path
+on the tiny models, `dtype: auto`, the render comparison."""
 import json
 import os
 import re
@@ -12,10 +13,9 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
 
-import gpu_check
+from gs_regional.bench import gpu_checks, gpu_report
 from gs_regional.guidance.instructpix2pix import InstructPix2Pix
 from gs_regional.utils.pretrained import Pretrained, resolve_dtype
 
@@ -33,8 +33,8 @@ def test_without_cuda_says_so_in_one_line_and_fails(tmp_path, extra):
     done = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), *extra], capture_output=True, text=True,
                           env=env, timeout=120, cwd=str(tmp_path))
     assert done.returncode == 1, done.stdout + done.stderr
-    assert done.stdout.splitlines() == [gpu_check.NO_CUDA_LINE]
-    assert gpu_check.NO_CUDA_LINE == (
+    assert done.stdout.splitlines() == [gpu_checks.NO_CUDA_LINE]
+    assert gpu_checks.NO_CUDA_LINE == (
         "gpu-check: no CUDA device (torch.cuda.is_available() is False); nothing was checked")
     assert not out.exists() and not (tmp_path / "outputs").exists()  # nothing was run or written
 
@@ -43,24 +43,39 @@ def test_makefile_target():
     text = (ROOT / "Makefile").read_text()
     assert "\ngpu-check: install\n" in text and "scripts/gpu_check.py --require-cuda" in text
     assert "\ntruth-suite: install\n" in text  # the other targets stay
+    assert gpu_report.GPU_TESTS == str(ROOT / "tests" / "gpu")  # the checks it runs are those tests
     test_recipe = re.search(r"\ntest: install[^\n]*\n(.*?)(\n\n|$)", text, re.S).group(1)
     assert "gsplat" not in test_recipe and "pytest" in test_recipe  # `make test` never installs gsplat
 
 
-# --------------------------------------------------------------------------- the runner
+# --------------------------------------------------------------------------- the checks as tests
+FAKE_CONFTEST = """
+from gs_regional.bench.pytest_plugin import (  # noqa: F401
+    check, gpu_ctx, priors, pytest_collection_modifyitems, pytest_configure,
+)
+import pytest
+
+
+@pytest.fixture
+def priors_check():
+    def broken(ctx):
+        raise RuntimeError("the priors did not build")
+    return broken
+"""
+
 FAKE_CHECKS = """
 import os
 import time
 
-from gpu_check import CheckFailed, Skip
+import pytest
+
+from gs_regional.bench.gpu_checks import CheckFailed, Skip
+
+pytestmark = pytest.mark.cuda
 
 
 def ok(ctx):
-    return {"seconds_s": 1.5, "count": 3, "_ctx": {"shared": "from ok"}}
-
-
-def reads_ctx(ctx):
-    return {"shared": ctx["shared"]}
+    return {"seconds_s": 1.5, "count": 3}
 
 
 def raises(ctx):
@@ -80,73 +95,132 @@ def out_of_tolerance(ctx):
 
 
 def sleeps(ctx):
-    time.sleep(120)
+    time.sleep(float(os.environ.get("FAKE_SLEEP_S", "120")))
 
 
-def dies(ctx):
-    print("going down", flush=True)
-    os._exit(7)
+@pytest.mark.limit_s(500)
+def test_ok(check):
+    check.run(lambda ctx: {**ok(ctx), "limit_s": check.limit_s})
+
+
+def test_raises(check):
+    check.run(raises)
+
+
+def test_skips(check):
+    check.run(skips)
+
+
+def test_fails(check):
+    check.run(fails)
+
+
+def test_out_of_tolerance(check):
+    check.run(out_of_tolerance)
+
+
+@pytest.mark.limit_s(2)
+def test_sleeps(check):
+    check.run(sleeps)
+
+
+def test_priors(check, priors_check):
+    check.run(priors_check, session_key="priors")
+
+
+def test_after_the_priors(check, priors):
+    check.run(ok)
+
+
+def test_dies(check):
+    if os.environ.get("FAKE_DIE"):
+        print("going down", flush=True)
+        os._exit(7)
+    check.run(ok)
 """
 
 
 @pytest.fixture
-def fake(tmp_path):
-    path = tmp_path / "fake_checks.py"
-    path.write_text(textwrap.dedent(FAKE_CHECKS))
-    spec = importlib.util.spec_from_file_location("fake_checks", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def fake_tests(tmp_path):
+    folder = tmp_path / "fake_gpu"
+    folder.mkdir()
+    (folder / "conftest.py").write_text(FAKE_CONFTEST)
+    (folder / "test_fake_checks.py").write_text(textwrap.dedent(FAKE_CHECKS))
+    return folder
 
 
-def C(name, func, limit=60, **kw):
-    return gpu_check.Check(name, func, limit, f"the {name} check", **kw)
+def run_fake(folder, tmp_path, only=(), **env):
+    """pytest on the fake checks as make gpu-check runs it (a smoke run: no CUDA needed); the rows."""
+    logs = tmp_path / "logs"
+    logs.mkdir(exist_ok=True)
+    xml, log = str(logs / "pytest.xml"), str(logs / "pytest.log")
+    environ = {**os.environ, "GPU_CHECK": "1", "GPU_CHECK_SMOKE_ON_CPU": "1", "GPU_CHECK_WORK": str(tmp_path),
+               "GPU_CHECK_BUDGET": "1000", **env}
+    rc = gpu_report.run_pytest(str(folder), xml, log, environ, only)
+    return rc, gpu_report.summarise(xml, log, rc)
 
 
-def test_runner_records_every_outcome_and_goes_on(fake, tmp_path):
-    checks = [
-        C("ok", fake.ok), C("reads_ctx", fake.reads_ctx), C("raises", fake.raises), C("skips", fake.skips),
-        C("fails", fake.fails), C("out_of_tolerance", fake.out_of_tolerance), C("sleeps", fake.sleeps, limit=2),
-        C("dies", fake.dies), C("after_failure", fake.ok, needs=("raises",)), C("after_ok", fake.ok, needs=("ok",)),
-        C("two_gpus", fake.ok, min_gpus=2),
-    ]
-    ctx = {"gpus": 1}
-    rows = gpu_check.run_checks(checks, ctx, budget_s=300, log_dir=str(tmp_path / "logs"), echo=lambda s: None)
+def test_each_outcome_of_a_check_is_its_row(fake_tests, tmp_path, capsys):
+    """A check's results, a failure (its reason: the error's last line, the check's own words, the
+    tolerance it missed, its time limit), a skip, a check whose priors did not build: one row each,
+    read back from pytest's report."""
+    rc, rows = run_fake(fake_tests, tmp_path)
+    assert rc == 1
     by = {r["name"]: r for r in rows}
-    assert [r["name"] for r in rows] == [c.name for c in checks]
-    assert by["ok"]["status"] == "ok" and by["ok"]["results"] == {"seconds_s": 1.5, "count": 3}
-    assert by["reads_ctx"]["results"] == {"shared": "from ok"}  # what a check hands on reaches the later ones
+    assert [r["name"] for r in rows] == ["ok", "raises", "skips", "fails", "out_of_tolerance", "sleeps", "priors",
+                                         "after_the_priors", "dies"]
+    assert by["ok"]["status"] == "ok" and by["ok"]["results"] == {"seconds_s": 1.5, "count": 3, "limit_s": 500}
     assert by["raises"]["status"] == "failed"
     assert by["raises"]["reason"] == "RuntimeError: the last line of the error"
-    assert "Traceback" in Path(by["raises"]["log"]).read_text()  # the whole error is in its log
+    log = Path(by["raises"]["log"]).read_text()
+    assert "Traceback" in log and "what went wrong first" in log  # the whole error is in the log
     assert (by["skips"]["status"], by["skips"]["reason"]) == ("skipped", "not on this machine")
     assert (by["fails"]["status"], by["fails"]["reason"]) == ("failed", "exit code 1: the run's last line")
     assert by["out_of_tolerance"]["status"] == "failed" and by["out_of_tolerance"]["results"] == {"diff": 0.5}
     assert by["out_of_tolerance"]["reason"] == "diff 0.5 > 0.001"
-    assert by["sleeps"]["status"] == "failed" and by["sleeps"]["reason"].startswith("timed out after 2 s")
+    assert (by["sleeps"]["status"], by["sleeps"]["reason"]) == ("failed", "timed out after 2 s")
     assert by["sleeps"]["seconds"] < 30
-    assert by["dies"]["status"] == "failed" and by["dies"]["reason"].startswith("exit code 7: going down")
-    assert (by["after_failure"]["status"], by["after_failure"]["reason"]) == ("skipped", "needs 'raises', which failed")
-    assert by["after_ok"]["status"] == "ok"
-    assert (by["two_gpus"]["status"], by["two_gpus"]["reason"]) == ("skipped", "needs 2 GPUs; this machine has 1")
+    assert (by["priors"]["status"], by["priors"]["reason"]) == ("failed", "RuntimeError: the priors did not build")
+    assert (by["after_the_priors"]["status"], by["after_the_priors"]["reason"]) == ("skipped", "needs 'priors', which failed")
+    assert by["ok"]["seconds"] > 0 and by["skips"]["seconds"] == 0
+    report = gpu_report.build_report(rows, {"gpus": []}, budget_s=1000, wall_s=12.0)
+    assert report["counts"] == {"ok": 2, "failed": 5, "skipped": 2}
 
 
-def test_runner_skips_the_rest_when_the_budget_is_spent(fake, tmp_path, monkeypatch):
-    times = iter([0.0, 0.0, 95.0, 96.0])  # start; first check at 0 s; then the budget is nearly spent
-    checks = [C("first", fake.ok, limit=500), C("second", fake.ok), C("third", fake.ok)]
-    limits = []
-    real_run_check = gpu_check.run_check
+def test_the_budget_skips_the_rest_and_bounds_each_check(fake_tests, tmp_path):
+    """A check's limit is its own or what is left of the budget, the smaller; once less than
+    MIN_CHECK_S is left, the checks after it are skipped saying so."""
+    budget = gpu_checks.MIN_CHECK_S + 1
+    rc, rows = run_fake(fake_tests, tmp_path, only=("ok", "sleeps", "dies"), GPU_CHECK_BUDGET=str(budget),
+                        FAKE_SLEEP_S="1.5")
+    by = {r["name"]: r for r in rows}
+    assert rc == 0 and [r["status"] for r in rows] == ["ok", "ok", "skipped"]
+    assert by["ok"]["results"]["limit_s"] <= budget < 500
+    assert by["dies"]["reason"].startswith(f"the {budget:.0f} s budget is spent (") and by["dies"]["reason"].endswith(" s used)")
 
-    def spy(check, ctx, limit_s, log_dir):
-        limits.append(limit_s)
-        return real_run_check(check, ctx, limit_s, log_dir)
 
-    monkeypatch.setattr(gpu_check, "run_check", spy)
-    rows = gpu_check.run_checks(checks, {}, budget_s=100, log_dir=str(tmp_path), clock=lambda: next(times),
-                                echo=lambda s: None)
-    assert limits == [100]  # a check's limit is its own or what is left of the budget, the smaller
-    assert [r["status"] for r in rows] == ["ok", "skipped", "skipped"]
-    assert rows[1]["reason"] == "the 100 s budget is spent (95 s used)"
+def test_a_crash_of_the_test_run_is_one_failed_row(fake_tests, tmp_path):
+    rc, rows = run_fake(fake_tests, tmp_path, only=("ok", "dies"), FAKE_DIE="1")
+    assert rc == 7
+    assert [(r["name"], r["status"]) for r in rows] == [("pytest", "failed")]
+    assert rows[0]["reason"].startswith("pytest ended (exit code 7) without a report of its checks")
+
+
+@pytest.mark.parametrize("smoke,reason", [("0", gpu_checks.NO_CUDA_REASON), ("1", gpu_checks.NOT_ASKED_REASON)])
+def test_the_gpu_tests_skip_saying_why(tmp_path, smoke, reason):
+    """tests/gpu/ in `make test`: without CUDA each check is skipped naming that; with a device (a
+    smoke run stands in for one here) only make gpu-check or `pytest -m cuda` runs them."""
+    env = dict(os.environ, CUDA_VISIBLE_DEVICES="", GPU_CHECK_SMOKE_ON_CPU=smoke, GPU_CHECK_WORK=str(tmp_path))
+    env.pop("GPU_CHECK", None)
+    xml = tmp_path / "report.xml"
+    done = subprocess.run([sys.executable, "-m", "pytest", str(ROOT / "tests" / "gpu"), "-p", "no:xdist", "-p",
+                           "no:cacheprovider", "-q", "-o", "junit_family=xunit1", f"--junitxml={xml}"],
+                          capture_output=True, text=True, env=env, timeout=300, cwd=str(ROOT))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    rows = gpu_report.rows_from_junit(str(xml))
+    assert [r["name"] for r in rows] == list(gpu_checks.CHECKS)
+    assert {(r["status"], r["reason"]) for r in rows} == {("skipped", reason)}
+    assert all(r["what"] == gpu_checks.CHECKS[r["name"]].what for r in rows)
 
 
 # --------------------------------------------------------------------------- table and JSON
@@ -165,14 +239,14 @@ def fake_rows():
 def test_table_and_json_from_rows(tmp_path):
     env = {"gpu": "NVIDIA H100 80GB HBM3", "gpus": ["NVIDIA H100 80GB HBM3"] * 2, "torch": "2.13.0+cu128",
            "cuda": "12.8", "gsplat": "1.5.3"}
-    report = gpu_check.build_report(fake_rows(), env, budget_s=570, wall_s=321.04, settings={"resolution": 512})
+    report = gpu_report.build_report(fake_rows(), env, budget_s=570, wall_s=321.04, settings={"resolution": 512})
     assert report["counts"] == {"ok": 1, "failed": 1, "skipped": 1}
-    path = gpu_check.write_report(report, str(tmp_path / "deep" / "gpu_check.json"))
+    path = gpu_report.write_report(report, str(tmp_path / "deep" / "gpu_check.json"))
     back = json.loads(Path(path).read_text())
     assert back == json.loads(json.dumps(report))
     assert back["gpu"] == "NVIDIA H100 80GB HBM3" and back["gsplat"] == "1.5.3" and back["schema"] == 1
     assert [r["name"] for r in back["rows"]] == ["gsplat_vs_torch", "ip2p_bf16", "two_process"]
-    table = gpu_check.format_table(report).splitlines()
+    table = gpu_report.format_table(report).splitlines()
     assert table[0] == ("gpu-check on NVIDIA H100 80GB HBM3 (2 GPUs), torch 2.13.0+cu128 (CUDA 12.8), gsplat 1.5.3: "
                         "1 ok, 1 failed, 1 skipped in 321 s (budget 570 s)")
     assert table[2:4] == ["| check | status | s | results | reason |", "| --- | --- | --- | --- | --- |"]
@@ -180,36 +254,36 @@ def test_table_and_json_from_rows(tmp_path):
                         "gaussians 50,000, finite yes | - |")  # paths stay in the JSON
     assert table[5] == "| ip2p_bf16 | skipped | - | - | Tesla V100 does not support bfloat16 |"
     assert table[6] == "| two_process | failed | 3.0 | wall_s 1,234 | exit code 1: ValueError: a / b |"
-    assert [gpu_check.format_value(v) for v in (None, 0.0, 0.5, 12.3456, 2e-4, 7)] == ["-", "0", "0.5", "12.3", "2.00e-04", "7"]
-    assert gpu_check.last_line("Traceback ...\n  File x\nKeyError: 'a'\n\n") == "KeyError: 'a'"
+    assert [gpu_report.format_value(v) for v in (None, 0.0, 0.5, 12.3456, 2e-4, 7)] == ["-", "0", "0.5", "12.3", "2.00e-04", "7"]
+    assert gpu_checks.last_line("Traceback ...\n  File x\nKeyError: 'a'\n\n") == "KeyError: 'a'"
 
 
 # --------------------------------------------------------------------------- the two-process check
 def test_two_process_command_and_its_failure(tmp_path, monkeypatch):
     ctx = {"work": str(tmp_path)}
-    cmd = gpu_check.two_process_command(ctx)
+    cmd = gpu_checks.two_process_command(ctx)
     assert cmd[1].endswith("launch.py") and cmd[cmd.index("--config") + 1].endswith(os.path.join("configs", "demo.yaml"))
     assert "--train" in cmd and "trainer.devices=2" in cmd and cmd[cmd.index("--gpu") + 1] == "0,1"
     (tmp_path / "logs").mkdir()
     failing = [sys.executable, "-c", "import sys; print('starting 2 processes'); "
                "sys.exit('RuntimeError: the strategy ddp is not supported yet')"]
-    monkeypatch.setattr(gpu_check, "two_process_command", lambda ctx: failing)
-    with pytest.raises(gpu_check.CheckFailed) as e:
-        gpu_check.check_two_process(ctx)
+    monkeypatch.setattr(gpu_checks, "two_process_command", lambda ctx: failing)
+    with pytest.raises(gpu_checks.CheckFailed) as e:
+        gpu_checks.check_two_process(ctx)
     assert str(e.value) == "exit code 1: RuntimeError: the strategy ddp is not supported yet"
 
 
 # --------------------------------------------------------------------------- renderers on the CPU
 def test_gsplat_check_is_skipped_off_cuda():
-    with pytest.raises(gpu_check.Skip, match="CUDA"):
-        gpu_check.check_gsplat_vs_torch({"device": "cpu"})
+    with pytest.raises(gpu_checks.Skip, match="CUDA"):
+        gpu_checks.check_gsplat_vs_torch({"device": "cpu"})
 
 
 def test_render_comparison_on_cpu(monkeypatch):
     """The comparison itself (torch-rasterizer against itself here): zero differences, gradients
     reached; a renderer that is off by 2e-3 fails the forward tolerance."""
     ctx = {"device": "cpu", "render_gaussians": 300, "resolution": 48}
-    same = gpu_check.render_comparison(ctx, other="torch-rasterizer")
+    same = gpu_checks.render_comparison(ctx, other="torch-rasterizer")
     assert "_fail" not in same and same["gaussians"] == 300 and same["size"] == 48
     assert same["visible_torch"] > 0 and same["visible_other_only"] == 0
     for key in ("fwd_rgb_max_abs", "fwd_alpha_max_abs", "fwd_depth_max_rel", "bwd_means_max_abs", "bwd_sh_rest_max_abs",
@@ -229,7 +303,7 @@ def test_render_comparison_on_cpu(monkeypatch):
             return {**out, "rgb": out["rgb"] + 2e-3}
 
     monkeypatch.setattr(registry, "find", lambda name, *a, **kw: OffBy if name == "off-by" else real_find(name, *a, **kw))
-    off = gpu_check.render_comparison(ctx, other="off-by")
+    off = gpu_checks.render_comparison(ctx, other="off-by")
     assert off["_fail"].startswith("forward rgb 2.00e-03 > 0.001 at 2304 pixels")
     assert off["bwd_max_rel"] == 0.0  # a constant offset leaves the gradients as they were
 
@@ -247,7 +321,7 @@ def test_render_comparison_on_cpu(monkeypatch):
     ctx = {"device": "cpu", "render_gaussians": 300, "resolution": 100}  # 1e-4 of 100² pixels: one may differ
     for by, fails in ((1.26e-3, False), (5e-3, True)):
         monkeypatch.setattr(registry, "find", lambda name, *a, **kw: one_pixel(by) if name == "off-by" else real_find(name, *a, **kw))
-        res = gpu_check.render_comparison(ctx, other="off-by")
+        res = gpu_checks.render_comparison(ctx, other="off-by")
         assert res["fwd_pixels_over_tol"] == 1 and ("_fail" in res) == fails, (by, res.get("_fail"))
 
 
@@ -290,10 +364,10 @@ def test_half_precision_guidance_runs_on_cpu(tiny_models, ip2p_fp32, dtype, torc
 
 @pytest.mark.parametrize("dtype", ["float16", "bfloat16"])
 def test_ip2p_check_on_cpu_with_tiny_models(tiny_models, dtype):
-    """gpu_check's IP2P check itself (what it runs at 512² on the GPU), on the CPU at 32²."""
+    """The IP2P check itself (what it runs at 512² on the GPU), on the CPU at 32²."""
     steps = 3
     ctx = {"device": "cpu", "priors": {"ip2p": tiny_models["ip2p"]}, "resolution": 32, "schedule": {"ddim_steps": steps}}
-    res = gpu_check.ip2p_step(ctx, dtype)
+    res = gpu_checks.ip2p_step(ctx, dtype)
     assert "_fail" not in res
     assert res["dtype"] == dtype and res["out_dtype"] == "float32" and res["finite"] is True
     assert res["resolution"] == 32 and "peak_gib" not in res  # CUDA memory only on CUDA
@@ -332,8 +406,8 @@ def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped
     donut = tmp_path / "donut.ply"
     donut.write_bytes(b"ply")  # only its presence is checked before the (faked) launch
     ctx = {"device": "cpu", "models": "tiny", "resolution": 64, "work": str(tmp_path), "donut": str(donut),
-           "priors": {"ip2p": "ip2p", "depth_anything": "da"}, "schedule": dict(gpu_check.CPU_SMOKE_SETTINGS["schedule"])}
-    argv = gpu_check.donut_argv(ctx)
+           "priors": {"ip2p": "ip2p", "depth_anything": "da"}, "schedule": dict(gpu_checks.CPU_SMOKE_SETTINGS["schedule"])}
+    argv = gpu_checks.donut_argv(ctx)
     assert set(bench_pipeline.RANDOM_WEIGHTS_NO_STOPS) <= set(argv)
 
     def fake_launch(stopped):
@@ -346,8 +420,8 @@ def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped
         return main
 
     monkeypatch.setattr(launch, "main", fake_launch("views disagree"))
-    with pytest.raises(gpu_check.CheckFailed, match="stopped early \\(views disagree\\)"):
-        gpu_check.check_donut_edit(ctx)
+    with pytest.raises(gpu_checks.CheckFailed, match="stopped early \\(views disagree\\)"):
+        gpu_checks.check_donut_edit(ctx)
     monkeypatch.setattr(launch, "main", fake_launch(None))
-    res = gpu_check.check_donut_edit(ctx)
+    res = gpu_checks.check_donut_edit(ctx)
     assert res["refine_edit_s"] == 2.0 and res["unet_evals"] == 10
