@@ -307,7 +307,7 @@ def test_render_comparison_on_cpu(monkeypatch):
     assert off["_fail"].startswith("forward rgb 2.00e-03 > 0.001 at 2304 pixels")
     assert off["bwd_max_rel"] == 0.0  # a constant offset leaves the gradients as they were
 
-    # One pixel off: a Gaussian at the alpha cut-off (as gsplat on the H200: 1.26e-3 at one pixel of 512²)
+    # One pixel off: a Gaussian at the alpha cut-off (as gsplat on a GPU: 1.26e-3 at one pixel of 512²)
     # passes; one pixel off by more than such a Gaussian can make fails.
     def one_pixel(by):
         class OnePixel(OffBy):
@@ -398,7 +398,7 @@ def test_dtype_auto_resolution(tiny_models, monkeypatch):
 
 # --------------------------------------------------------------------------- the donut edit's timing
 def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped(tmp_path, monkeypatch):
-    """Random weights stop a real edit after localization (seen on the H200): the check turns the safe
+    """Random weights stop a real edit after localization: the check turns the safe
     stops off so that every stage is timed, and a run that stops anyway is a failure, not a timing."""
     import gs_regional.launch as launch
     from gs_regional.bench import pipeline as bench_pipeline

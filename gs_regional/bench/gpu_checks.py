@@ -67,9 +67,9 @@ CPU_SMOKE_SETTINGS = dict(device="cpu", models="tiny", resolution=64, gaussians=
 FORWARD_TOL = 1e-3  # rgb and alpha, absolute; depth, relative on pixels with alpha > 0.5
 BACKWARD_TOL = 1e-2  # gradients, max abs difference relative to the largest gradient
 # A Gaussian whose alpha at a pixel sits at the 1/255 cut-off can fall on either side of it in the two
-# renderers (float rounding); that pixel then differs by up to its contribution, below 1/255. Seen on the
-# H200: one pixel of 262,144 at 1.26e-3 (50k Gaussians, 512²), the 99.9th percentile at 1.7e-6. So a few
-# pixels may pass FORWARD_TOL, none CUTOFF_MAX.
+# renderers (float rounding); that pixel then differs by up to its contribution, below 1/255 (with 50k
+# Gaussians at 512², gsplat differs at one pixel of 262,144 by 1.26e-3; its 99.9th percentile is 1.7e-6).
+# So a few pixels may pass FORWARD_TOL, none CUTOFF_MAX.
 CUTOFF_MAX = 1 / 255
 CUTOFF_FRACTION = 1e-4  # of the pixels, at most, beyond FORWARD_TOL
 

@@ -52,7 +52,7 @@ BUDGETS = {
                  in2n_steps=300, turntable_frames=12, densify_every=50),
 }
 # Random weights edit nothing consistently, so the safe stops (views disagree, edit outside the region)
-# would end a regional edit after localization (seen on the H200 with the real-size folders): off, so that
+# end a regional edit with the real-size folders after localization: they are off here, so that
 # every stage runs and is timed. A run that stops anyway is an error, not a timing.
 RANDOM_WEIGHTS_NO_STOPS = ["system.localization.min_view_agreement=0", "system.localization.min_edit_coverage=0"]
 
