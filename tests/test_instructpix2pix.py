@@ -68,7 +68,8 @@ def test_relevance_range_shape_and_counters(ip2p):
     # Prompt embeddings are cached (text and the empty prompt).
     assert PROMPT in ip2p._emb_cache and "" in ip2p._emb_cache
     # A view's map does not depend on how the batch is split into UNet calls.
-    assert ip2p.cfg.batch_size == 1  # the default: one view per UNet call
+    # The default "auto" is one view per UNet call on a CPU (and measures the memory on CUDA).
+    assert ip2p.cfg.batch_size == "auto" and ip2p.batch_size_for(x) == 1
     ip2p.cfg.batch_size = 4
     try:
         rel_split = ip2p.relevance(x, PROMPT, samples=2)

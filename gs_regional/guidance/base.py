@@ -12,9 +12,10 @@ image, seed and camera only, never on which views share the call or how the call
 """
 from __future__ import annotations
 
+import logging
 import numbers
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Union
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 
@@ -25,6 +26,18 @@ from gs_regional.utils.image import check_cameras, check_images, check_output_sh
 from gs_regional.utils.pretrained import batches
 
 Seeds = Union[int, Sequence[int]]
+AUTO = "auto"
+AUTO_MEMORY_SHARE = 0.85  # of the free memory "auto" may fill: room for the renders and allocator slack
+AUTO_MAX_BATCH = 16  # beyond this a UNet call is no faster per view on any GPU measured
+log = logging.getLogger(__name__)
+
+
+def fitting_batch(free: int, peak_one: int, peak_two: int, share: float = AUTO_MEMORY_SHARE,
+                  most: int = AUTO_MAX_BATCH) -> int:
+    """The most views per call whose memory fits `share` of `free` bytes, from the measured peaks
+    of one view and of two (each view adds peak_two - peak_one, the first one peak_one)."""
+    per_view = max(peak_two - peak_one, 1)
+    return int(min(max(1 + (share * free - peak_one) // per_view, 1), most))
 
 
 def keep_peak_blob(filtered: torch.Tensor, binary: torch.Tensor, relevance: torch.Tensor) -> torch.Tensor:
@@ -50,7 +63,9 @@ class Guidance(Configurable):
     class Config:
         # Views per model call (a UNet call spends 2x these images for relevance, 3x for edit).
         # Larger batches are faster on a GPU and need more memory; results do not depend on it.
-        batch_size: int = 1
+        # "auto": on CUDA the most views whose measured memory fits the free memory at the run's
+        # resolution (`auto_batch_size`), 1 on a CPU.
+        batch_size: Union[int, str] = 1
 
     # Timesteps (`timestep` of relevance, `t_start` of edit) are integers in
     # [0, num_train_timesteps): Stable Diffusion's training schedule unless a plugin says otherwise.
@@ -66,9 +81,45 @@ class Guidance(Configurable):
                 f"{type(self).__name__}.Config must derive from Guidance.Config (it holds batch_size, the views "
                 "per model call): write `class Config(Guidance.Config):`"
             )
-        if self.cfg.batch_size < 1:
-            raise ConfigError(f"{component_name(self)}: batch_size (views per model call) must be >= 1, got {self.cfg.batch_size}")
+        b = self.cfg.batch_size
+        if not (b == AUTO or (isinstance(b, int) and not isinstance(b, bool) and b >= 1)):
+            raise ConfigError(f"{component_name(self)}: batch_size (views per model call) must be >= 1 or '{AUTO}', "
+                              f"got {b!r}")
+        self._auto_batches: Dict[Tuple[int, int], int] = {}  # (H, W) -> the batch "auto" chose there
         self.reset_counters()
+
+    def batch_size_for(self, images: torch.Tensor) -> int:
+        """Views per model call for (B, H, W, 3) `images`: the configured number, or for "auto" the
+        one measured once per resolution (`auto_batch_size`)."""
+        if self.cfg.batch_size != AUTO:
+            return int(self.cfg.batch_size)
+        hw = (int(images.shape[1]), int(images.shape[2]))
+        if hw not in self._auto_batches:
+            self._auto_batches[hw] = self.auto_batch_size(images[:1])
+            log.info("%s: batch_size auto -> %d views per model call at %dx%d", component_name(self),
+                     self._auto_batches[hw], hw[1], hw[0])
+        return self._auto_batches[hw]
+
+    def auto_batch_size(self, image: torch.Tensor) -> int:
+        """The batch "auto" chooses: 1 off CUDA (a CPU gains nothing from larger batches) or for a
+        plugin that cannot measure its memory; on CUDA, `fitting_batch` of the free memory and the
+        memory one edit of one and of two copies of `image` (1, H, W, 3) takes (`_probe_peaks`)."""
+        device = torch.device(getattr(self, "device", "cpu"))
+        if device.type != "cuda":
+            return 1
+        counters = self.counters()
+        torch.cuda.synchronize(device)
+        free = torch.cuda.mem_get_info(device)[0]
+        peaks = self._probe_peaks(image)
+        self.unet_evals, self.vae_encodes, self.vae_decodes = counters.values()  # the probe is not the edit's
+        if peaks is None:
+            return 1
+        return fitting_batch(free, *peaks)
+
+    def _probe_peaks(self, image: torch.Tensor) -> Optional[Tuple[int, int]]:
+        """Override to measure: the peak memory (bytes, above what is held before) of `_edit` on one
+        and on two copies of `image`. None: not measured, "auto" uses 1."""
+        return None
 
     def reset_counters(self) -> None:
         self.unet_evals = 0
@@ -101,7 +152,7 @@ class Guidance(Configurable):
             raise ValueError(f"{where}: samples must be an integer >= 1, got {samples!r}")
         seeds = self._check_seeds(seed, images.shape[0], where)
         maps = []
-        for s in batches(images.shape[0], self.cfg.batch_size):
+        for s in batches(images.shape[0], self.batch_size_for(images)):
             out = self._relevance(images[s], prompt, timestep, samples, seeds[s], _part(cameras, s))
             maps.append(check_output_shape(out, images[s].shape[:3], where))
         return torch.cat(maps)
@@ -157,7 +208,7 @@ class Guidance(Configurable):
             self._check_timestep(t_start, "t_start", where)
         seeds = self._check_seeds(seed, images.shape[0], where)
         edited = []
-        for s in batches(images.shape[0], self.cfg.batch_size):
+        for s in batches(images.shape[0], self.batch_size_for(images)):
             out = self._edit(images[s], cond_images[s], prompt, t_start, seeds[s], _part(cameras, s))
             edited.append(check_output_shape(out, images[s].shape, where))
         return torch.cat(edited)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import contextlib
 import warnings
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -43,7 +43,9 @@ class InstructPix2Pix(Guidance):
     @dataclass
     class Config(Guidance.Config):
         # batch_size (Guidance.Config): views per UNet call; the UNet batch is 2x this in
-        # relevance and 3x in edit. 1 is the least memory; 4-8 are faster on a large GPU.
+        # relevance and 3x in edit. "auto" measures the memory of one and two views once per
+        # resolution and takes the most that fit (`_probe_peaks`; 1 on a CPU).
+        batch_size: Union[int, str] = "auto"
         pretrained: str = "timbrooks/instruct-pix2pix"  # hub id or local folder (diffusers layout)
         dtype: str = "auto"  # auto = float16 on CUDA, float32 on CPU; float32 | float16 | bfloat16
         device: str = "auto"
@@ -216,6 +218,25 @@ class InstructPix2Pix(Guidance):
         diff = F.interpolate((diff / samples)[:, None], size=(h, w), mode="bilinear", align_corners=False)[:, 0]
         diff = diff / diff.flatten(1).amax(dim=1).clamp_min(1e-12)[:, None, None]
         return diff.clamp(0, 1).to(images.device)
+
+    def _probe_peaks(self, image: torch.Tensor) -> Optional[Tuple[int, int]]:
+        """Peak CUDA memory (bytes above what is held before) of one guided step of `_edit` on one
+        and on two copies of `image`: what `batch_size: auto` sizes its batch from. The VAE and
+        the UNet run at the call's resolution, so one denoising step shows the whole peak."""
+        if self.device.type != "cuda":
+            return None
+        self.scheduler.set_timesteps(self.cfg.num_inference_steps)
+        t_last = int(self.scheduler.timesteps[-1])  # one denoising step
+        peaks = []
+        for n in (1, 2):
+            views = image.expand(n, -1, -1, -1).contiguous()
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            held = torch.cuda.memory_allocated(self.device)
+            self._edit(views, views, "", t_last, [0] * n, None)
+            torch.cuda.synchronize(self.device)
+            peaks.append(torch.cuda.max_memory_allocated(self.device) - held)
+        return peaks[0], peaks[1]
 
     def _edit(
         self, images: torch.Tensor, cond_images: torch.Tensor, prompt: str, t_start: Optional[int], seeds: List[int], cameras
