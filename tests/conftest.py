@@ -1,7 +1,6 @@
 """Test session set-up: never touch the network; locate the shared data."""
 import os
 import socket
-import sys
 from pathlib import Path
 
 import pytest
@@ -19,8 +18,10 @@ _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _WORKERS > 1:
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _WORKERS)))
 
+from trial_helpers import ROOT, launch  # noqa: E402 (after the environment above)
+
 # ../shared/data beside the checkout; GS_REGIONAL_DATA points elsewhere (e.g. from a git worktree).
-SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or ROOT.parent / "shared" / "data")
 
 
 class NetworkAccessError(RuntimeError):
@@ -51,3 +52,10 @@ def shared_path(*parts: str) -> Path:
 @pytest.fixture
 def shared():
     return shared_path
+
+
+@pytest.fixture(scope="session")
+def small_demo_run(tmp_path_factory):
+    """One run of the small demo (tests/data/small_demo.yaml), shared by the tests that read its
+    outputs or resume and compare against it: its trial dir."""
+    return launch(tmp_path_factory.mktemp("small_demo"), "small-demo")

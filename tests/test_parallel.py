@@ -3,33 +3,20 @@ trainer.devices=2` runs the demo on two processes of Lightning's launcher over g
 same edit as one process, with one set of outputs, and resumes on the same or another number of
 processes; the split of the views, the launch settings and the errors of bad use, without
 processes."""
-import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-from trial_helpers import trial_of
+from trial_helpers import launch, launch_process, metrics_of as metrics, trial_of
 from gs_regional.config import ConfigError
-from gs_regional.launch import main
 from gs_regional.launch.run import data_parallel_kwargs
 from gs_regional.systems import parallel
 
-ROOT = Path(__file__).resolve().parents[1]
-DEMO = str(ROOT / "configs" / "demo.yaml")
-# The demo at a small size: 2 cycles of 16 steps (densification at steps 5 and 10 of each), 4 views
-# per cycle, 6 localization views, a checkpoint every 8 steps.
-SMALL = [
-    "data.n_cameras=16", "data.width=48", "data.height=48", "system.eval.turntable_frames=2",
-    "system.eval.max_test_views=2", "system.localization.max_views=6", "system.refine.cycles=2",
-    "system.refine.iterations_per_cycle=16", "system.refine.m=3", "system.densify.every=5",
-    "checkpoint.every_n_train_steps=8", "trainer.enable_progress_bar=false",
-]
+# Every run is the small demo (tests/data/small_demo.yaml): 3 cycles of 4 steps, densifying every
+# 2 steps, 4 views per cycle (m=3 and the frontal view).
 TWO = ["trainer.accelerator=cpu", "trainer.devices=2"]
 
 
@@ -115,10 +102,8 @@ def test_bad_use_of_several_processes_is_a_clear_error():
 
 def test_more_processes_than_views_is_refused_before_any_trial_dir(tmp_path, capsys):
     # 4 views per refinement cycle (m=3 and the frontal view) cannot be shared by 5 processes.
-    rc = main(["--config", DEMO, "--train", f"exp_root_dir={tmp_path}", "name=many", *SMALL,
-               "trainer.accelerator=cpu", "trainer.devices=5"])
+    launch(tmp_path, "many", "trainer.accelerator=cpu", "trainer.devices=5", expect=2)
     err = capsys.readouterr().err
-    assert rc == 2
     assert "ask for 5 processes, but the edit has only 4 views in each refinement cycle" in err
     assert "give at most 4 devices" in err
     assert not (tmp_path / "many").exists()
@@ -126,9 +111,9 @@ def test_more_processes_than_views_is_refused_before_any_trial_dir(tmp_path, cap
 
 @pytest.mark.skipif(torch.cuda.device_count() >= 2, reason="this machine has the GPUs")
 def test_a_gpu_list_this_machine_does_not_have_is_refused(tmp_path, capsys):
-    rc = main(["--config", DEMO, "--train", "--gpu", "0,1", f"exp_root_dir={tmp_path}", "name=gpus", *SMALL])
+    launch(tmp_path, "gpus", args=("--gpu", "0,1"), expect=2)
     err = capsys.readouterr().err
-    assert rc == 2 and "--gpu 0,1" in err and "GPU" in err
+    assert "--gpu 0,1" in err and "GPU" in err
     assert not (tmp_path / "gpus").exists()
 
 
@@ -153,29 +138,19 @@ def test_bench_parallel_reports_each_stage_against_one_process():
 
 
 # ----------------------------------------------------------------------------- two processes
-def launch(out, name, *overrides):
-    """python launch.py ... in a fresh process (Lightning's launcher runs launch.py again for rank
-    1: never from inside pytest); returns (trial dir, stdout)."""
-    cmd = [sys.executable, str(ROOT / "launch.py"), "--config", DEMO, "--train", f"exp_root_dir={out}", f"name={name}",
-           *SMALL, *overrides]
-    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    return trial_of(out, name), done.stdout
-
-
-def metrics(trial):
-    with open(os.path.join(trial, "save", "metrics.json")) as f:
-        return json.load(f)
+def launch_two(out, name, *overrides):
+    """The small demo on several processes: launch.py in a fresh process (Lightning's launcher runs
+    launch.py again for rank 1: never from inside pytest); returns (trial dir, stdout)."""
+    stdout = launch_process(out, name, *overrides).stdout.decode()
+    return trial_of(out, name), stdout
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, small_demo_run):
+    """The small demo on one process (the session's run) and on two."""
     out = tmp_path_factory.mktemp("parallel")
-    # One process needs no launcher: in this process (a Python start-up fewer than a subprocess).
-    assert main(["--config", DEMO, "--train", f"exp_root_dir={out}", "name=one", *SMALL]) == 0
-    one = trial_of(out, "one")
-    two, stdout = launch(out, "two", *TWO)
-    return {"out": out, "one": one, "two": two, "two_stdout": stdout}
+    two, stdout = launch_two(out, "two", *TWO)
+    return {"out": out, "one": small_demo_run, "two": two, "two_stdout": stdout}
 
 
 def assert_same_edit(m, ref):
@@ -210,21 +185,21 @@ def test_two_processes_write_one_set_of_outputs(runs):
     stdout = runs["two_stdout"]
     assert stdout.count("results: ") == 1 and stdout.count("trial dir: ") <= 1  # rank 0 alone prints
     ckpt = torch.load(trial / "ckpts" / "last.ckpt", map_location="cpu", weights_only=True)
-    assert ckpt["global_step"] == 32
+    assert ckpt["global_step"] == 12
 
 
 @pytest.mark.parametrize("processes", [1, 2], ids=["resumed-on-1", "resumed-on-2"])
 def test_a_two_process_run_resumes_on_any_number_of_processes(runs, processes, tmp_path):
-    """Stopped after 20 of 32 steps (in the second cycle, after the first's densifications) on 2 processes,
+    """Stopped after 6 of 12 steps (in the second cycle, after the first's densifications) on 2 processes,
     resumed on 1 or 2: the edit of the uninterrupted run."""
     stopped = runs.get("stopped")
     if stopped is None:
-        stopped, _ = launch(runs["out"], "stopped", *TWO, "trainer.max_steps=20")
+        stopped, _ = launch_two(runs["out"], "stopped", *TWO, "trainer.max_steps=6")
         runs["stopped"] = stopped
     trial = tmp_path / "stopped" / Path(stopped).name
     shutil.copytree(stopped, trial)
     more = TWO if processes == 2 else []
-    resumed, _ = launch(tmp_path, "stopped", *more, f"resume={trial / 'ckpts' / 'last.ckpt'}")
+    resumed, _ = launch_two(tmp_path, "stopped", *more, f"resume={trial / 'ckpts' / 'last.ckpt'}")
     assert Path(resumed) == trial
     m = metrics(trial)
     assert m["world_size"] == processes

@@ -1,42 +1,28 @@
 """Nothing lost, nothing silent: a table of bad inputs and faults -> what the user gets,
 and kill-and-resume at every stage boundary of the regional edit compared with an uninterrupted run.
 
-Every run is the demo (simulated editor and depth) at a tiny size, in-process, except the one that
+Every run is the small demo (tests/data/small_demo.yaml: simulated editor and depth), in-process, except the one that
 is really killed (SIGKILL) while it writes a checkpoint. The table is the README's "What happens
 when things go wrong"."""
 import io
 import itertools
-import json
-import os
 import shutil
-import subprocess
-import sys
 import textwrap
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from trial_helpers import ply_arrays, write_scene_folder
+from trial_helpers import (ROOT, launch, launch_process, metrics_without_timings as metrics, ply_arrays, trial_of,
+                           write_scene_folder)
 from gs_regional.geometry.ply import PlyError, check_ply_header, read_ply
 from gs_regional.launch import main
 from gs_regional.launch.checkpoints import load_checkpoint_file, previous_path, save_atomic
 from gs_regional.launch.trial import TrialLock
 
-ROOT = Path(__file__).resolve().parents[1]
-DEMO = str(ROOT / "configs" / "demo.yaml")
 EDIT = str(ROOT / "configs" / "edit.yaml")
-# The demo's stages at a tiny size: 3 cycles x 4 steps, a checkpoint at every cycle boundary.
-TINY = [
-    "data.n_cameras=12", "data.width=32", "data.height=32", "system.eval.turntable_frames=2",
-    "system.eval.max_test_views=2", "system.localization.max_views=6", "system.refine.iterations_per_cycle=4",
-    "system.refine.m=3", "system.densify.every=2", "checkpoint.every_n_train_steps=4",
-    "trainer.enable_progress_bar=false", "use_timestamp=false",
-]
-TIMING_KEYS = ("seconds", "seconds_total")  # wall-clock: the only metrics allowed to differ
 
 
 class SimulatedKill(BaseException):
@@ -44,36 +30,15 @@ class SimulatedKill(BaseException):
     error (Lightning writes no checkpoint on an exception either)."""
 
 
-def launch(out, name, *overrides, config=DEMO):
-    return main(["--config", config, "--train", f"exp_root_dir={out}", f"name={name}", *TINY, *overrides])
-
-
-def trial(out, name):
-    return Path(out) / name / "add"
-
-
-def metrics(trial_dir):
-    m = json.loads((Path(trial_dir) / "save" / "metrics.json").read_text())
-    return {k: v for k, v in m.items() if k not in TIMING_KEYS}
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """One uninterrupted tiny run, shared by every comparison below."""
-    out = tmp_path_factory.mktemp("reliability")
-    assert launch(out, "reference") == 0
-    return {"out": out, "trial": trial(out, "reference")}
-
-
-def same_outputs(resumed, reference):
+def same_outputs(resumed, small_demo_run):
     """edited.ply and metrics.json (timings aside) as the uninterrupted run wrote them. Exact:
     the resumed run repeats the same float operations in the same order on the same machine."""
     a = ply_arrays(Path(resumed) / "save" / "edited.ply")
-    b = ply_arrays(Path(reference) / "save" / "edited.ply")
+    b = ply_arrays(Path(small_demo_run) / "save" / "edited.ply")
     assert a.keys() == b.keys()
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
-    assert metrics(resumed) == metrics(reference)
+    assert metrics(resumed) == metrics(small_demo_run)
 
 
 def last_error_line(capsys):
@@ -118,7 +83,10 @@ DOOR_CASES = [
      ["system.refine.iterations_per_cycle", ">= 1"]),
     ("cycles 0", lambda t: ["system.refine.cycles=0"], ["system.refine.cycles", ">= 1"]),
     ("min_edit_blend above 1", lambda t: ["system.refine.min_edit_blend=1.5"], ["system.refine.min_edit_blend", "[0, 1]"]),
-    ("composite_min_blend below 0", lambda t: ["system.refine.composite_min_blend=-0.1"], ["system.refine.composite_min_blend", "[0, 1]"]),
+    ("m negative", lambda t: ["system.refine.m=-1"], ["system.refine.m must be an integer >= 0", "got -1"]),
+    ("a removed key", lambda t: ["system.refine.composite_min_blend=0.3"], ["system.refine.composite_min_blend' was removed"]),
+    ("a moved key", lambda t: ["system.localize_with_truth=true"], ["has moved: use 'system.ablation.localize_with_truth'"]),
+    ("stop_after unknown", lambda t: ["system.stop_after=initialize"], ["system.stop_after", "'localize'"]),
     ("cycles negative", lambda t: ["system.refine.cycles=-2"], ["system.refine.cycles", ">= 1"]),
     ("t_schedule increasing", lambda t: ["system.refine.t_schedule=[250,500,750]"],
      ["system.refine.t_schedule", "non-increasing"]),
@@ -126,8 +94,8 @@ DOOR_CASES = [
      ["system.refine.t_schedule", "[0, 999]"]),
     ("shape_t_schedule too short", lambda t: ["system.refine.shape_t_schedule=[450,350]"],
      ["system.refine.shape_t_schedule", "2 timesteps for 3 cycles"]),
-    ("composite_full_coverage above 1", lambda t: ["system.refine.composite_full_coverage=2"],
-     ["system.refine.composite_full_coverage", "[0, 1]"]),
+    ("min_recoloured_fraction above 1", lambda t: ["system.refine.min_recoloured_fraction=2"],
+     ["system.refine.min_recoloured_fraction", "[0, 1]"]),
     ("localization timestep out of range", lambda t: ["system.localization.timestep=1000"],
      ["system.localization.timestep", "[0, 999]"]),
     ("name with ..", lambda t: ["name=../../escaped"], ["name='../../escaped'", "single folder name"]),
@@ -143,7 +111,7 @@ DOOR_CASES = [
 @pytest.mark.parametrize("case,overrides,fragments", DOOR_CASES, ids=[c[0] for c in DOOR_CASES])
 def test_bad_setting_or_input_is_one_line_exit_2_and_no_trial_dir(case, overrides, fragments, tmp_path, capsys):
     out = tmp_path / "outputs"
-    assert launch(out, "door", *overrides(tmp_path)) == 2
+    launch(out, "door", *overrides(tmp_path), expect=2)
     line = last_error_line(capsys)
     assert line.startswith("error: "), line
     for f in fragments:
@@ -221,55 +189,55 @@ def test_ply_with_more_data_than_its_header_declares_warns_with_the_byte_count(t
 
 def test_m_above_the_number_of_views_says_all_views_are_used(tmp_path, caplog):
     # Said when the scene is known, before anything is edited (then this scene, seen by no camera, stops the run).
-    assert launch(tmp_path, "many", "system.refine.m=100", f"system.geometry.ply={_far_ply(tmp_path)}") == 2
+    launch(tmp_path, "many", "system.refine.m=100", f"system.geometry.ply={_far_ply(tmp_path)}", expect=2)
     assert any("every cycle edits all of them" in r.getMessage() and "system.refine.m=100" in r.getMessage()
                for r in caplog.records), [r.getMessage() for r in caplog.records]
 
 
 # ------------------------------------------------------------------ checkpoints and the trial dir
-def _copy_trial(reference, tmp_path, name):
+def _copy_trial(small_demo_run, tmp_path, name):
     dst = tmp_path / name / "add"
-    shutil.copytree(reference["trial"], dst)
+    shutil.copytree(small_demo_run, dst)
     return dst
 
 
-def test_truncated_checkpoint_is_named_offers_the_previous_and_changes_nothing(reference, tmp_path, capsys):
-    trial_dir = _copy_trial(reference, tmp_path, "corrupt")
+def test_truncated_checkpoint_is_named_offers_the_previous_and_changes_nothing(small_demo_run, tmp_path, capsys):
+    trial_dir = _copy_trial(small_demo_run, tmp_path, "corrupt")
     ckpt = trial_dir / "ckpts" / "last.ckpt"
     assert previous_path(ckpt).is_file()  # the checkpoint before the last one is kept
     data = ckpt.read_bytes()
     ckpt.write_bytes(data[: len(data) // 2])
     before = sorted(p.relative_to(trial_dir) for p in trial_dir.rglob("*"))
     cmd = (trial_dir / "cmd.txt").read_text()
-    assert launch(tmp_path, "corrupt", f"resume={ckpt}") == 2
+    launch(tmp_path, "corrupt", f"resume={ckpt}", expect=2)
     line = last_error_line(capsys)
     assert str(ckpt) in line and "cannot be loaded" in line and f"resume={previous_path(ckpt)}" in line, line
     assert sorted(p.relative_to(trial_dir) for p in trial_dir.rglob("*")) == before
     assert (trial_dir / "cmd.txt").read_text() == cmd
 
 
-def test_second_writer_of_a_trial_is_refused(reference, tmp_path, capsys):
-    trial_dir = _copy_trial(reference, tmp_path, "locked")
+def test_second_writer_of_a_trial_is_refused(small_demo_run, tmp_path, capsys):
+    trial_dir = _copy_trial(small_demo_run, tmp_path, "locked")
     with TrialLock(trial_dir):  # another run holds the trial
-        assert launch(tmp_path, "locked", f"resume={trial_dir / 'ckpts' / 'last.ckpt'}") == 2
+        launch(tmp_path, "locked", f"resume={trial_dir / 'ckpts' / 'last.ckpt'}", expect=2)
     line = last_error_line(capsys)
     assert "in use by another run" in line and str(trial_dir) in line, line
     assert len(list((trial_dir / "csv_logs").iterdir())) == 1  # no second log was started
 
 
-def test_resume_with_a_changed_config_says_what_changed_and_refuses_what_breaks_it(reference, tmp_path, capsys, caplog):
-    trial_dir = _copy_trial(reference, tmp_path, "changed")
+def test_resume_with_a_changed_config_says_what_changed_and_refuses_what_breaks_it(small_demo_run, tmp_path, capsys, caplog):
+    trial_dir = _copy_trial(small_demo_run, tmp_path, "changed")
     ckpt = trial_dir / "ckpts" / "last.ckpt"
-    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.iterations_per_cycle=2") == 2
+    launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.iterations_per_cycle=2", expect=2)
     line = last_error_line(capsys)
     assert "system.refine.iterations_per_cycle: 4 -> 2" in line and str(ckpt) in line, line
-    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.prompt=something else") == 2
+    launch(tmp_path, "changed", f"resume={ckpt}", "system.prompt=something else", expect=2)
     assert "system.prompt" in last_error_line(capsys)
     # Decided at initialization (which source parameters train): a change would be silently ignored.
-    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.min_recoloured_fraction=0") == 2
+    launch(tmp_path, "changed", f"resume={ckpt}", "system.refine.min_recoloured_fraction=0", expect=2)
     assert "system.refine.min_recoloured_fraction" in last_error_line(capsys)
     # A change that leaves the checkpoint meaningful: the run goes on and says what changed.
-    assert launch(tmp_path, "changed", f"resume={ckpt}", "system.eval.max_test_views=1") == 0
+    launch(tmp_path, "changed", f"resume={ckpt}", "system.eval.max_test_views=1")
     said = [r.getMessage() for r in caplog.records if "config differs from the checkpoint" in r.getMessage()]
     assert said and "system.eval.max_test_views: 2 -> 1" in said[0], said
 
@@ -314,20 +282,16 @@ KILL_DURING_CHECKPOINT = textwrap.dedent("""
 """)
 
 
-def test_kill_9_while_writing_a_checkpoint_loses_nothing(reference, tmp_path):
+def test_kill_9_while_writing_a_checkpoint_loses_nothing(small_demo_run, tmp_path):
     """A real SIGKILL in the middle of writing last.ckpt: the previous checkpoint (after
     initialization) stays complete and the resumed run ends as the uninterrupted one."""
     out = tmp_path / "out"
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run(
-        [sys.executable, "-c", KILL_DURING_CHECKPOINT, "--config", DEMO, "--train", f"exp_root_dir={out}",
-         "name=killed", *TINY], capture_output=True, text=True, timeout=300, env=env)
-    assert proc.returncode == -9, proc.stderr[-2000:]
-    ckpt = trial(out, "killed") / "ckpts" / "last.ckpt"
+    launch_process(out, "killed", program=KILL_DURING_CHECKPOINT, expect=-9, timeout=300)
+    ckpt = trial_of(out, "killed") / "ckpts" / "last.ckpt"
     state = load_checkpoint_file(ckpt)  # complete: the checkpoint written before the kill
     assert state["gs_regional"]["extra"]["phase"] == "refine" and state["global_step"] == 0
-    assert launch(out, "killed", f"resume={ckpt}") == 0
-    same_outputs(trial(out, "killed"), reference["trial"])
+    launch(out, "killed", f"resume={ckpt}")
+    same_outputs(trial_of(out, "killed"), small_demo_run)
 
 
 # ------------------------------------------------------------------ kill and resume at each stage boundary
@@ -357,7 +321,7 @@ KILLS = [
 
 
 @pytest.mark.parametrize("boundary,kill,resumes_from", KILLS, ids=[k[0] for k in KILLS])
-def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kill, resumes_from, reference,
+def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kill, resumes_from, small_demo_run,
                                                                    tmp_path, monkeypatch):
     from gs_regional.systems import edit_base, regional_edit
 
@@ -366,11 +330,11 @@ def test_kill_after_each_stage_resumes_to_the_uninterrupted_result(boundary, kil
         _kill_in(m, owner, kill[1], *([kill[2]] if kill[2] else []))
         with pytest.raises(SimulatedKill):
             launch(tmp_path, "killed")
-    ckpt = trial(tmp_path, "killed") / "ckpts" / "last.ckpt"
+    ckpt = trial_of(tmp_path, "killed") / "ckpts" / "last.ckpt"
     state = load_checkpoint_file(ckpt)
     assert (state["gs_regional"]["extra"]["phase"], state["global_step"]) == resumes_from
-    assert launch(tmp_path, "killed", f"resume={ckpt}") == 0
-    same_outputs(trial(tmp_path, "killed"), reference["trial"])  # counters of the whole run included
+    launch(tmp_path, "killed", f"resume={ckpt}")
+    same_outputs(trial_of(tmp_path, "killed"), small_demo_run)  # counters of the whole run included
 
 
 def test_a_recolour_killed_in_refinement_resumes_colour_only(tmp_path, monkeypatch):
@@ -380,30 +344,30 @@ def test_a_recolour_killed_in_refinement_resumes_colour_only(tmp_path, monkeypat
     from gs_regional.systems import regional_edit
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red")
-    assert launch(tmp_path, "whole", *recolour) == 0
+    launch(tmp_path, "whole", *recolour)
     with monkeypatch.context() as m:
         _kill_in(m, regional_edit.RegionalEdit, "edit_cycle_views", _at_cycle(1))
         with pytest.raises(SimulatedKill):
             launch(tmp_path, "killed", *recolour)
-    ckpt = trial(tmp_path, "killed") / "ckpts" / "last.ckpt"
-    assert launch(tmp_path, "killed", f"resume={ckpt}", *recolour) == 0
-    init = metrics(trial(tmp_path, "whole"))["init"]
+    ckpt = trial_of(tmp_path, "killed") / "ckpts" / "last.ckpt"
+    launch(tmp_path, "killed", f"resume={ckpt}", *recolour)
+    init = metrics(trial_of(tmp_path, "whole"))["init"]
     assert init["added"] == 0 and "rejected" not in init  # a trusted "no change of shape": colour only
-    same_outputs(trial(tmp_path, "killed"), trial(tmp_path, "whole"))
+    same_outputs(trial_of(tmp_path, "killed"), trial_of(tmp_path, "whole"))
 
 
 # Without depth initialization refinement densifies the region (clones, splits, prunes, and prunes the
 # useless added Gaussians at its end): the path whose state a resume must carry in full.
-DENSIFYING = ("system.initialize=false",)
+DENSIFYING = ("system.ablation.initialize=false",)
 
 
 @pytest.fixture(scope="module")
 def densifying(tmp_path_factory):
     out = tmp_path_factory.mktemp("densifying")
-    assert launch(out, "whole", *DENSIFYING) == 0
-    m = metrics(trial(out, "whole"))
+    launch(out, "whole", *DENSIFYING)
+    m = metrics(trial_of(out, "whole"))
     assert m["count_densified"] > 0 and m["count_pruned_added"] > 0  # the path under test
-    return trial(out, "whole")
+    return trial_of(out, "whole")
 
 
 # (how the first run ends, at which step): stopped by trainer.max_steps between cycles and mid-cycle
@@ -417,18 +381,18 @@ def test_a_densifying_run_resumed_in_refinement_ends_as_the_whole_run(end, step,
 
     every = ["checkpoint.every_n_train_steps=2"] if end == "kill" else []
     if end == "stop":
-        assert launch(tmp_path, "resumed", *DENSIFYING, f"trainer.max_steps={step}") == 0
+        launch(tmp_path, "resumed", *DENSIFYING, f"trainer.max_steps={step}")
     else:
         with monkeypatch.context() as m:
             calls = itertools.count()  # one optimize_on per refinement step: dies in step `step`
             _kill_in(m, edit_base.EditSystemBase, "optimize_on", lambda *a, **k: next(calls) == step)
             with pytest.raises(SimulatedKill):
                 launch(tmp_path, "resumed", *DENSIFYING, *every)
-    ckpt = trial(tmp_path, "resumed") / "ckpts" / "last.ckpt"
+    ckpt = trial_of(tmp_path, "resumed") / "ckpts" / "last.ckpt"
     state = load_checkpoint_file(ckpt)
     assert (state["gs_regional"]["extra"]["phase"], state["global_step"]) == ("refine", step if end == "stop" else 6)
-    assert launch(tmp_path, "resumed", f"resume={ckpt}", *DENSIFYING, *every) == 0
-    same_outputs(trial(tmp_path, "resumed"), densifying)
+    launch(tmp_path, "resumed", f"resume={ckpt}", *DENSIFYING, *every)
+    same_outputs(trial_of(tmp_path, "resumed"), densifying)
 
 
 # ------------------------------------------------------------------ the safe path when the method can tell it fails
@@ -439,16 +403,16 @@ def test_first_edit_outside_the_localized_region_stops_with_the_source_unchanged
     selection: the run says so and writes the source unchanged instead of a no-op "edit"."""
     from gs_regional.sim.scene import make_edit
 
-    assert launch(tmp_path, "side", "system.guidance.side_miss_start=0", "system.guidance.side_miss_end=20") == 0
+    launch(tmp_path, "side", "system.guidance.side_miss_start=0", "system.guidance.side_miss_end=20")
     assert "the first edited view" in capsys.readouterr().err
-    m = metrics(trial(tmp_path, "side"))
+    m = metrics(trial_of(tmp_path, "side"))
     assert m["stopped"] == "edit outside the region" and m["mask_iou"] < 0.1
     assert m["view_agreement"] >= 0.3  # the older check passes: only the new one sees the failure
     assert m["edit_coverage"] < 0.5 and len(m["warnings"]) == 1
     assert "system.localization.min_edit_coverage=0.5" in m["warnings"][0]
     assert f"{m['edit_coverage']:.2f}" in m["warnings"][0]
     assert m["gaussians_added"] == 0 and m["psnr_unedited"] == 120.0  # the source, unchanged
-    edited = ply_arrays(trial(tmp_path, "side") / "save" / "edited.ply")
+    edited = ply_arrays(trial_of(tmp_path, "side") / "save" / "edited.ply")
     source = make_edit("add").source
     np.testing.assert_array_equal(np.stack([edited[k] for k in "xyz"], 1), source.means.detach().numpy())
 
@@ -472,8 +436,8 @@ def test_a_first_edit_that_shows_nothing_is_checked_in_another_view(tmp_path, mo
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
     monkeypatch.setattr(SimulatedEditor, "_edit", first_full_edit_shows_nothing)
-    assert launch(tmp_path, "hidden") == 0
-    m = metrics(trial(tmp_path, "hidden"))
+    launch(tmp_path, "hidden")
+    m = metrics(trial_of(tmp_path, "hidden"))
     checked = m["edit_coverage_views"]
     assert len(first) == 1 and len(checked) == 2 and checked[0]["coverage"] == 0.0
     assert checked[0]["changed_px"] < 0.15 * checked[1]["changed_px"]
@@ -504,8 +468,8 @@ def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree(tmp_p
 
     monkeypatch.setattr(sim_editor.SimulatedEditor, "_edit", moved)
     name = f"moved{int(others_agree)}"
-    assert launch(tmp_path, name) == 0
-    m = metrics(trial(tmp_path, name))
+    launch(tmp_path, name)
+    m = metrics(trial_of(tmp_path, name))
     checked = m["edit_coverage_views"]
     assert len(checked) == 3 and checked[0]["coverage"] < 0.25 and checked[1]["coverage"] >= 0.5
     if others_agree:
@@ -515,11 +479,11 @@ def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree(tmp_p
 
 
 def test_the_truth_as_selection_ablation_edits_the_true_region(tmp_path):
-    """`system.localize_with_truth=true` (scenes with a known edit): localization runs, the true
-    region is the selection; what the rest of the method loses to localization is then measurable
-    (scripts/truth_suite.py ... system.localize_with_truth=true)."""
-    assert launch(tmp_path, "truth", "system.localize_with_truth=true") == 0
-    m = metrics(trial(tmp_path, "truth"))
+    """`system.ablation.localize_with_truth=true` (scenes with a known edit): localization runs, the
+    true region is the selection; what the rest of the method loses to localization is then
+    measurable (the truth suite's truth-selection runs)."""
+    launch(tmp_path, "truth", "system.ablation.localize_with_truth=true")
+    m = metrics(trial_of(tmp_path, "truth"))
     assert m["mask_iou"] == 1.0 and "stopped" not in m and m["view_agreement"] is not None
 
 
@@ -541,8 +505,8 @@ def test_a_change_too_small_to_place_does_not_stop_the_run(tmp_path, monkeypatch
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
     monkeypatch.setattr(SimulatedEditor, "_edit", speck_only)
-    assert launch(tmp_path, "speck") == 0
-    m = metrics(trial(tmp_path, "speck"))
+    launch(tmp_path, "speck")
+    m = metrics(trial_of(tmp_path, "speck"))
     decided = next(c for c in m["edit_coverage_views"] if c.get("decides"))
     assert decided["coverage"] == 0.0
     if speck == 1:
@@ -552,13 +516,13 @@ def test_a_change_too_small_to_place_does_not_stop_the_run(tmp_path, monkeypatch
         assert decided["changed_px"] > 30 and m["stopped"] == "edit outside the region"
 
 
-def test_a_normal_run_edits_what_it_localized_and_does_not_warn(reference):
-    m = metrics(reference["trial"])
+def test_a_normal_run_edits_what_it_localized_and_does_not_warn(small_demo_run):
+    m = metrics(small_demo_run)
     assert m["warnings"] == [] and "stopped" not in m and m["edit_coverage"] >= 0.5
     assert m["source_deleted"] == 0  # an edit that removes nothing keeps every source Gaussian
 
 
-def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_shows_the_region(tmp_path, monkeypatch, reference):
+def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_shows_the_region(tmp_path, monkeypatch, small_demo_run):
     """In a view that hides the region the relevance map, normalised to its peak, is noise, and its
     blobs (in the empty background) can be larger than every real mask: that view was edited first,
     its full edit showed next to nothing (3 pixels of a patch on the donut, in the selection, so no
@@ -568,7 +532,7 @@ def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_sho
     of the region; the run moves to the view where the 2D masks and the selection overlap most."""
     from gs_regional.sim.editor import SimulatedEditor
 
-    first_without = metrics(reference["trial"])["v_first"]
+    first_without = metrics(small_demo_run)["v_first"]
     relevance, edit = SimulatedEditor._relevance, SimulatedEditor._edit
     blobbed = []
 
@@ -593,8 +557,8 @@ def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_sho
 
     monkeypatch.setattr(SimulatedEditor, "_relevance", noise_in_one_view)
     monkeypatch.setattr(SimulatedEditor, "_edit", shows_nothing_there)
-    assert launch(tmp_path, "blobs") == 0
-    m = metrics(trial(tmp_path, "blobs"))
+    launch(tmp_path, "blobs")
+    m = metrics(trial_of(tmp_path, "blobs"))
     assert blobbed and "stopped" not in m
     first, second = m["edit_coverage_views"][:2]
     assert blobbed[0].startswith(f"view_{first['view']:03d}_") and first["changed_px"] < 2  # edited first: nothing
@@ -602,19 +566,19 @@ def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_sho
 
 
 @pytest.mark.parametrize("rule", ["default", "off"])
-def test_a_first_view_that_shows_the_region_keeps_the_edit_when_its_change_is_drowned(tmp_path, monkeypatch, reference, rule):
+def test_a_first_view_that_shows_the_region_keeps_the_edit_when_its_change_is_drowned(tmp_path, monkeypatch, small_demo_run, rule):
     """A tone drift the fit cannot take out (the stability sweep's regeneration drift 0.4) can
     drown the first full edit's change in the editor's noise although the view shows the region:
     the hand-over to the view of largest overlap moved the edit there and cost 1.2 dB. Known
     answer: the first view's full edit comes back unchanged; the run keeps that view (its
     selection overlaps its 2D mask as much as any view's). With the rule off (every view taken
     for one that hides the region) the run moves, so the scene does test the rule."""
-    import gs_regional.systems.regional_edit as regional_edit
+    import gs_regional.edit.first_view as first_view
     from gs_regional.sim.editor import SimulatedEditor
 
     if rule == "off":
-        monkeypatch.setattr(regional_edit, "HIDES_REGION", float("inf"))
-    first_without = metrics(reference["trial"])["v_first"]
+        monkeypatch.setattr(first_view, "HIDES_REGION", float("inf"))
+    first_without = metrics(small_demo_run)["v_first"]
     edit = SimulatedEditor._edit
 
     def drowned(self, images, cond_images, prompt, t_start, seeds, cameras):
@@ -624,8 +588,8 @@ def test_a_first_view_that_shows_the_region_keeps_the_edit_when_its_change_is_dr
         return edit(self, images, cond_images, prompt, t_start, seeds, cameras)
 
     monkeypatch.setattr(SimulatedEditor, "_edit", drowned)
-    assert launch(tmp_path, "drowned") == 0
-    m = metrics(trial(tmp_path, "drowned"))
+    launch(tmp_path, "drowned")
+    m = metrics(trial_of(tmp_path, "drowned"))
     assert "stopped" not in m and m["edit_coverage_views"][0]["changed_px"] == 0
     if rule == "default":
         assert m["v_first"] == first_without and len(m["edit_coverage_views"]) == 1, m["edit_coverage_views"]
@@ -658,9 +622,9 @@ def test_a_big_object_sticking_out_of_its_part_is_not_taken_for_an_edit_elsewher
         return out
 
     monkeypatch.setattr(SimulatedEditor, "_edit", sticks_out)
-    # At 64²: at TINY's 32² the painted band would be most of the body, where the editor's noise is measured.
-    assert launch(tmp_path, "big", "data.width=64", "data.height=64") == 0
-    m = metrics(trial(tmp_path, "big"))
+    # At 64²: at the small demo's 32² the painted band would be most of the body, where the editor's noise is measured.
+    launch(tmp_path, "big", "data.width=64", "data.height=64")
+    m = metrics(trial_of(tmp_path, "big"))
     checked = m["edit_coverage_views"]
     first = checked[0]
     assert 0.25 <= first["coverage"] < 0.5 and first["region_changed"] >= 0.5, first

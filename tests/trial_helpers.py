@@ -1,22 +1,88 @@
-"""Reading what a launch.py run wrote into its trial directory (shared by the system tests)."""
+"""Launching runs the way a user does (launch.py, in this process or a fresh one) and reading what
+they wrote into their trial directory (shared by the system tests)."""
 import glob
 import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 from plyfile import PlyData
+
+ROOT = Path(__file__).resolve().parents[1]  # the checkout
+DEMO = ROOT / "configs" / "demo.yaml"
+SMALL_DEMO = Path(__file__).parent / "data" / "small_demo.yaml"
+# The keys of the small demo that every system on the synthetic scene takes (in2n as well).
+_SCENE_SECTIONS = ("use_timestamp", "data.", "system.eval.", "checkpoint.", "trainer.")
+
+
+def small_demo(scene_only=False):
+    """tests/data/small_demo.yaml as key=value overrides (of configs/demo.yaml); `scene_only`: its
+    scene, evaluation and trainer keys alone, for another system on the synthetic scene."""
+    flat = []
+
+    def walk(node, prefix):
+        for key, value in node.items():
+            if isinstance(value, dict):
+                walk(value, f"{prefix}{key}.")
+            else:
+                flat.append((f"{prefix}{key}", value))
+
+    walk(OmegaConf.to_container(OmegaConf.load(SMALL_DEMO)), "")
+    return [f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in flat
+            if not scene_only or k.startswith(_SCENE_SECTIONS)]
+
+
+def launch_args(out, name, *overrides, config=DEMO, small=True, mode="--train"):
+    """launch.py's arguments for a run of `config` named `name` under the exp_root_dir `out`, with
+    the small demo's overrides first (`small`: True, "scene" for its scene keys alone, False)."""
+    size = small_demo(scene_only=small == "scene") if small else []
+    modes = (mode,) if isinstance(mode, str) else tuple(mode)  # ("--export", "region")
+    return ["--config", str(ROOT / config), *modes, f"exp_root_dir={out}", f"name={name}", *size, *overrides]
+
+
+def launch(out, name, *overrides, config=DEMO, small=True, expect=0, args=()):
+    """launch.py in this process: asserts its exit code and returns the new trial dir (None when
+    `expect` is not 0). `args`: more of launch.py's options (--gpu 0, --verbose, --custom-dir D)."""
+    from gs_regional.launch import main
+
+    code = main([*launch_args(out, name, *overrides, config=config, small=small), *args])
+    assert code == expect, f"launch.py exited {code}, expected {expect}"
+    return trial_of(out, name) if expect == 0 else None
+
+
+def launch_process(out, name, *overrides, config=DEMO, small=True, program=None, env=None, expect=0, timeout=600):
+    """launch.py in a fresh Python process (`program`: Python source run instead of launch.py, which
+    reads the same arguments); returns the finished process, its output as bytes."""
+    head = [sys.executable, "-c", program] if program else [sys.executable, str(ROOT / "launch.py")]
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])), **(env or {})}
+    proc = subprocess.run([*head, *launch_args(out, name, *overrides, config=config, small=small)],
+                          capture_output=True, timeout=timeout, env=env, cwd=ROOT)
+    if expect is not None:
+        assert proc.returncode == expect, proc.stdout.decode()[-3000:] + proc.stderr.decode()[-3000:]
+    return proc
 
 
 def trial_of(tmp, name):
     """The newest trial dir of experiment `name` under the exp_root_dir `tmp`."""
     trials = sorted(glob.glob(os.path.join(tmp, name, "*")), key=os.path.getmtime)
     assert trials, f"no trial dir under {tmp}/{name}"
-    return trials[-1]
+    return Path(trials[-1])
 
 
 def metrics_of(trial):
     with open(os.path.join(trial, "save", "metrics.json")) as f:
         return json.load(f)
+
+
+TIMING_KEYS = ("seconds", "seconds_total")  # wall-clock: the only metrics two runs of one edit may differ in
+
+
+def metrics_without_timings(trial):
+    return {k: v for k, v in metrics_of(trial).items() if k not in TIMING_KEYS}
 
 
 def run_quick(script, out, json_name):
