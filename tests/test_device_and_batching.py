@@ -15,10 +15,9 @@ import pytest
 import torch
 
 from tiny_models_fixture import one_thread, tiny_models  # noqa: F401
-from trial_helpers import metrics_of, trial_of, write_scene_folder
+from trial_helpers import ROOT, launch, metrics_of, write_scene_folder
 from gs_regional.config import ConfigError
 from gs_regional.guidance.instructpix2pix import InstructPix2Pix
-from gs_regional.launch import main
 from gs_regional.registry import register
 from gs_regional.renderers import gsplat_rasterizer as gsplat_mod
 from gs_regional.renderers.select import check_renderer_config, make_renderer, resolve_renderer_type
@@ -27,28 +26,10 @@ from gs_regional.sim.scene import make_cameras, make_edit
 from gs_regional.systems.in2n import In2N
 from gs_regional.systems.regional_edit import RegionalEdit
 
-ROOT = Path(__file__).resolve().parents[1]
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (CPU-only machine)")
 GSPLAT = pytest.mark.skipif(
     not gsplat_mod.gsplat_available(), reason="needs a CUDA GPU and the gsplat package (pip install 'gs_regional[gsplat]')"
 )
-
-SMALL_SCENE = [
-    "data.n_cameras=16", "data.width=48", "data.height=48",
-    "system.eval.turntable_frames=2", "system.eval.max_test_views=2", "trainer.enable_progress_bar=false",
-]
-SMALL_DEMO = SMALL_SCENE + ["system.localization.max_views=8"]
-
-
-def launch(tmp, name, config, *overrides, gpu=None, verbose=False):
-    argv = ["--config", str(ROOT / config), "--train", f"exp_root_dir={tmp}", f"name={name}", *overrides]
-    if gpu is not None:
-        argv += ["--gpu", str(gpu)]
-    if verbose:  # info lines of every gs_regional module (the console is quiet by default)
-        argv.append("--verbose")
-    assert main(argv) == 0
-    return trial_of(tmp, name)
-
 
 # ------------------------------------------------------------------ device
 
@@ -103,16 +84,15 @@ class PlacementRecordingIn2N(In2N):
 
 
 @pytest.mark.parametrize("gpu", [None, pytest.param(0, marks=CUDA)], ids=["cpu", "cuda"])
-@pytest.mark.parametrize("system,config,steps", [
-    ("placement-recording-regional-edit", "configs/demo.yaml",
-     ["system.localization.max_views=8", "system.refine.cycles=2", "system.refine.iterations_per_cycle=3",
-      "system.refine.m=3", "system.densify.every=2"]),
-    ("placement-recording-in2n", "configs/in2n.yaml", ["system.max_steps=4", "system.edit_every=2"]),
+@pytest.mark.parametrize("system,config,small,steps", [
+    ("placement-recording-regional-edit", "configs/demo.yaml", True,
+     ["system.refine.cycles=2", "system.refine.iterations_per_cycle=3"]),
+    ("placement-recording-in2n", "configs/in2n.yaml", "scene", ["system.max_steps=4", "system.edit_every=2"]),
 ])
-def test_every_render_is_on_the_module_device_after_placement(tmp_path, system, config, steps, gpu):
+def test_every_render_is_on_the_module_device_after_placement(tmp_path, system, config, small, steps, gpu):
     Placement.reset()
-    trial = launch(tmp_path, "device", config, *SMALL_SCENE, *steps, f"system_type={system}",
-                   "system.renderer_type=device-asserting-rasterizer", gpu=gpu)
+    trial = launch(tmp_path, "device", *steps, f"system_type={system}", "system.renderer_type=device-asserting-rasterizer",
+                   config=config, small=small, args=() if gpu is None else ("--gpu", str(gpu)))
     assert Placement.renders > 20  # localization, source renders, training, outputs
     assert Placement.violations == [], Placement.violations[:5]
     assert metrics_of(trial)["seconds"]["source_renders"] >= 0  # the stage keeps its name
@@ -176,11 +156,11 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_the_simulator(tmp_pat
     runs = {}
     for batch in (1, 5):
         runs[batch] = cycle_state(launch(
-            tmp_path, f"b{batch}", "configs/demo.yaml", *SMALL_DEMO, "trainer.max_steps=1", "system.refine.m=6",
+            tmp_path, f"b{batch}", "trainer.max_steps=1", "system.refine.m=6",
             f"system.guidance.batch_size={batch}", "checkpoint.every_n_train_steps=1",
         ))
     # The m=6 neighbours of the first view (an addition's first cycle has no target for the first
-    # view itself: refine.first_cycle_first_view=skip).
+    # view itself).
     assert runs[1]["cycle_views"] == runs[5]["cycle_views"] and len(runs[1]["cycle_views"]) == 6
     # The simulator draws each view's randomness from (its seed, its camera) only: exactly equal.
     assert torch.equal(runs[1]["cycle_targets"], runs[5]["cycle_targets"])
@@ -206,7 +186,7 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
         f"data.source={scene}", "data.test_every=8", f"system.geometry.ply={scene / 'point_cloud.ply'}",
         "system.prompt=give him a mustache", "system.seed=3",
         f"system.guidance.pretrained={tiny_models['ip2p']}", "system.guidance.num_inference_steps=4",
-        "system.guidance_type=seed-recording-ip2p", "system.initialize=false",
+        "system.guidance_type=seed-recording-ip2p", "system.ablation.initialize=false",
         "system.localization.max_views=4", "system.localization.gamma=0.5", "system.localization.mask_threshold=0.3",
         "system.refine.cycles=1", "system.refine.t_schedule=[750]", "system.refine.shape_t_schedule=[750]",
         "system.refine.m=5",
@@ -219,15 +199,15 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
     try:
         for batch in (1, 3):
             SeedRecordingIP2P.calls = []
-            runs[batch] = cycle_state(launch(tmp_path / "out", f"b{batch}", "configs/edit.yaml", *common,
-                                             f"system.guidance.batch_size={batch}"))
+            runs[batch] = cycle_state(launch(tmp_path / "out", f"b{batch}", *common, f"system.guidance.batch_size={batch}",
+                                             config="configs/edit.yaml", small=False))
             calls[batch] = [c for c in SeedRecordingIP2P.calls if c[0] == 750]
     finally:
         torch.set_num_threads(n)
     views = runs[1]["cycle_views"]
     assert runs[3]["cycle_views"] == views and len(views) == 5
     # The m=5 neighbours of v_first: without depth initialization the shape may change, so the
-    # first cycle has no target for the first view (refine.first_cycle_first_view=skip).
+    # first cycle has no target for the first view (an addition's first cycle).
     assert runs[1]["v_first"] not in views
     expected_seeds = [3 + 1000 * 1 + j for j in views]
     assert calls[1] == [(750, [s], 1) for s in expected_seeds]  # one view per UNet batch
@@ -250,8 +230,8 @@ def test_gsplat_and_torch_rasterizer_agree_on_the_reconstructed_face(tmp_path, s
     from gs_regional.registry import find
 
     face = shared("face")
-    trial = launch(tmp_path, "face", "configs/reconstruct.yaml", f"data.source={face}", "data.downscale=4",
-                   "trainer.enable_progress_bar=false", gpu=0)
+    trial = launch(tmp_path, "face", f"data.source={face}", "data.downscale=4", "trainer.enable_progress_bar=false",
+                   config="configs/reconstruct.yaml", small=False, args=("--gpu", "0"))
     model = GaussianModel.from_ply(os.path.join(trial, "save", "reconstructed.ply")).cuda()
     dm = find("scene-datamodule")({"source": str(face), "downscale": 4, "load_images": False})
     dm.setup("fit")
@@ -277,14 +257,14 @@ def test_edit_runs_with_auto_renderer_on_cuda(tmp_path, tiny_models, caplog):  #
     scene, _ = write_scene_folder(tmp_path, n_cameras=8, size=64)
     with caplog.at_level(logging.INFO, logger="gs_regional"):
         trial = launch(
-            tmp_path / "out", "auto", "configs/edit.yaml", f"data.source={scene}", "data.test_every=4",
+            tmp_path / "out", "auto", f"data.source={scene}", "data.test_every=4",
             f"system.geometry.ply={scene / 'point_cloud.ply'}", "system.prompt=give him a mustache",
             f"system.guidance.pretrained={tiny_models['ip2p']}", "system.guidance.num_inference_steps=4",
             "system.guidance.batch_size=4", f"system.depth.pretrained={tiny_models['depth_anything']}",
             "system.localization.max_views=4", "system.localization.gamma=0.5", "system.localization.mask_threshold=0.3",
             "system.refine.cycles=2", "system.refine.t_schedule=[750,500]", "system.refine.iterations_per_cycle=5",
-            "system.refine.m=3", "system.eval.turntable_frames=3", "trainer.enable_progress_bar=false", gpu=0,
-            verbose=True,
+            "system.refine.m=3", "system.eval.turntable_frames=3", "trainer.enable_progress_bar=false",
+            config="configs/edit.yaml", small=False, args=("--gpu", "0", "--verbose"),  # --verbose: info lines of every module
         )
     assert any("renderer_type auto: gsplat-rasterizer" in r.getMessage() for r in caplog.records)
     assert (Path(trial) / "save" / "edited.ply").exists()
