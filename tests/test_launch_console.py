@@ -2,10 +2,7 @@
 left behind, a traceback with --debug), a quiet run whose progress is whole lines when the output
 is no terminal, and the end-of-run summary whose paths exist."""
 import json
-import os
 import re
-import subprocess
-import sys
 import zlib
 from pathlib import Path
 
@@ -18,14 +15,8 @@ from gs_regional.data.nerfstudio import TransformsError
 from gs_regional.geometry.ply import PlyError
 from gs_regional.launch import main
 from gs_regional.launch.summary import RunInfo, format_summary
+from trial_helpers import launch_args, launch_process, small_demo
 
-ROOT = Path(__file__).resolve().parents[1]
-# The demo, small enough for a test (the same stages, fewer views and steps).
-SMALL_DEMO = [
-    "data.n_cameras=24", "data.width=64", "data.height=64",
-    "system.eval.turntable_frames=4", "system.eval.max_test_views=3", "system.localization.max_views=12",
-    "system.refine.iterations_per_cycle=10", "system.refine.m=5", "system.densify.every=5",
-]
 
 
 def _transforms(folder: Path, image_name: str) -> None:
@@ -66,7 +57,7 @@ def bad_colmap(tmp):
 def bad_ply(tmp):
     # Read by the system inside the Lightning run, after the trial dir exists: it must go again.
     (tmp / "scene.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nend_header\n")
-    return "configs/demo.yaml", [f"system.geometry.ply={tmp / 'scene.ply'}", *SMALL_DEMO], PlyError, tmp / "scene.ply"
+    return "configs/demo.yaml", [f"system.geometry.ply={tmp / 'scene.ply'}", *small_demo()], PlyError, tmp / "scene.ply"
 
 
 @pytest.mark.parametrize("case", [bad_transforms, bad_image, bad_colmap, bad_ply])
@@ -75,7 +66,7 @@ def test_bad_input_file_is_one_line_and_leaves_no_trial_dir(case, tmp_path, caps
     inputs.mkdir()
     config, overrides, error_type, culprit = case(inputs)
     out = tmp_path / "outputs"
-    argv = ["--config", str(ROOT / config), "--train", f"exp_root_dir={out}", *overrides]
+    argv = launch_args(out, "bad", *overrides, config=config, small=False)
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err
@@ -87,14 +78,11 @@ def test_bad_input_file_is_one_line_and_leaves_no_trial_dir(case, tmp_path, caps
         main(argv + ["--debug"])
 
 
-def run_launch(*args, timeout=600):
-    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
-    # Bytes, decoded here: text mode would turn carriage returns into newlines.
-    proc = subprocess.run([sys.executable, str(ROOT / "launch.py"), *args], capture_output=True,
-                          timeout=timeout, env=env)
-    stdout, stderr = proc.stdout.decode(), proc.stderr.decode()
-    assert proc.returncode == 0, stderr[-3000:]
-    return stdout, stderr
+def run_launch(*args, **kwargs):
+    """launch.py in a fresh process (its output is no terminal): (stdout, stderr). Bytes, decoded
+    here: text mode would turn carriage returns into newlines."""
+    proc = launch_process(*args, **kwargs)
+    return proc.stdout.decode(), proc.stderr.decode()
 
 
 LIGHTNING_NOISE = ("Tip:", "Trainable params", "GPU available", "TPU available", "Seed set", "val_dataloader",
@@ -102,8 +90,8 @@ LIGHTNING_NOISE = ("Tip:", "Trainable params", "GPU available", "TPU available",
 
 
 def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path):
-    stdout, stderr = run_launch("--config", str(ROOT / "configs/demo.yaml"), "--train",
-                                f"exp_root_dir={tmp_path}", *SMALL_DEMO)
+    # The small demo (3 cycles of 4 steps) with the progress it leaves out: what this test reads.
+    stdout, stderr = run_launch(tmp_path, "demo", "trainer.enable_progress_bar=true")
     (trial,) = (tmp_path / "demo").iterdir()
     # Quiet: the trial dir on stderr, nothing from Lightning, no warnings.
     assert stderr.strip().splitlines() == [f"trial dir: {trial}"], stderr
@@ -113,18 +101,18 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
     # stage is seen to start and one at each tenth of the steps, never a carriage return.
     assert "\r" not in stdout + stderr
     progress, summary = stdout.rsplit("\n\n", 1)
-    lines = [re.fullmatch(r"(.+): (\d+)/30 steps \((\d+)%\), \d\d:\d\d", line) for line in progress.splitlines()]
+    lines = [re.fullmatch(r"(.+): (\d+)/12 steps \((\d+)%\), \d\d:\d\d", line) for line in progress.splitlines()]
     assert all(lines), progress
     stages = list(dict.fromkeys(m.group(1) for m in lines))
     # (localize and initialize are seen at the checkpoints that end them, output at the last one)
     assert stages == ["start", "localize", "initialize", "refine 1/3", "refine 2/3", "refine 3/3", "output"], progress
-    assert {int(m.group(2)) * 10 // 30 for m in lines} == set(range(11))  # each tenth of the steps
-    assert len(lines) <= len(stages) + 11 and lines[-1].group(1, 2) == ("output", "30")
+    assert {int(m.group(2)) * 10 // 12 for m in lines} == set(range(11))  # each tenth of the steps
+    assert len(lines) <= len(stages) + 11 and lines[-1].group(1, 2) == ("output", "12")
 
     lines = summary.strip().splitlines()
     assert lines[-1] == f"results: {trial}"
     rows = dict(re.fullmatch(r"(\S.*?)\s{2,}(.*)", line).groups() for line in lines[:-1])
-    assert rows["ran"].startswith("train regional-edit on synthetic-scene") and "30 steps" in rows["ran"]
+    assert rows["ran"].startswith("train regional-edit on synthetic-scene") and "12 steps" in rows["ran"]
     m = json.loads((trial / "save" / "metrics.json").read_text())
     assert rows["Gaussians"] == (f"{m['gaussians_before']:,} before, +{m['count_added_init']:,} from depth, "
                                  f"+{m['count_densified']:,} densified"
@@ -144,8 +132,8 @@ def test_verbose_brings_back_lightning_messages(tmp_path):
     config = tmp_path / "tiny.yaml"
     config.write_text("name: tiny\ndata_type: tiny-data\nsystem_type: tiny-system\n")
     (tmp_path / "custom" / "tiny.py").write_text(TINY)
-    common = ["--config", str(config), "--train", "--custom-dir", str(tmp_path / "custom"), f"exp_root_dir={tmp_path}"]
-    out, err = run_launch(*common, "--verbose")  # the quiet run is checked on the demo above
+    out, err = run_launch(tmp_path, "tiny", config=config, small=False,  # the quiet run is checked on the demo above
+                          args=("--custom-dir", str(tmp_path / "custom"), "--verbose"))
     for noise in ("Trainable params", "Seed set", "GPU available"):  # model summary, Lightning's info lines
         assert noise in out + err, noise
     assert "debug [gs_regional.launch.plugins]: loaded plugin custom/tiny.py" in err

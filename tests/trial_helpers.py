@@ -53,13 +53,14 @@ def launch(out, name, *overrides, config=DEMO, small=True, expect=0, args=()):
     return trial_of(out, name) if expect == 0 else None
 
 
-def launch_process(out, name, *overrides, config=DEMO, small=True, program=None, env=None, expect=0, timeout=600):
+def launch_process(out, name, *overrides, config=DEMO, small=True, expect=0, args=(), program=None, env=None,
+                   timeout=600):
     """launch.py in a fresh Python process (`program`: Python source run instead of launch.py, which
     reads the same arguments); returns the finished process, its output as bytes."""
     head = [sys.executable, "-c", program] if program else [sys.executable, str(ROOT / "launch.py")]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE",
            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])), **(env or {})}
-    proc = subprocess.run([*head, *launch_args(out, name, *overrides, config=config, small=small)],
+    proc = subprocess.run([*head, *launch_args(out, name, *overrides, config=config, small=small), *args],
                           capture_output=True, timeout=timeout, env=env, cwd=ROOT)
     if expect is not None:
         assert proc.returncode == expect, proc.stdout.decode()[-3000:] + proc.stderr.decode()[-3000:]
