@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from trial_helpers import launch, metrics_of, trial_of
 from gs_regional.edit.composite import composite_target
 from gs_regional.edit.localize import render_selection
 from gs_regional.metrics.image import psnr
@@ -407,43 +408,42 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
     54-60 with this gate). Known answer: the true region plus a rim 3 % of the scene wide as the
     selection; the rim's Gaussians keep their source colours and the surroundings score higher
     than with the gate off, while the true region still takes the edit."""
-    from test_reliability import launch, metrics, trial
+    from gs_regional.edit import strategies
+    from gs_regional.edit.localize import SEEN_MIN_WEIGHT
     from gs_regional.geometry import neighbors, rows
     from gs_regional.systems import regional_edit
 
     seen = {}
-    localize, gate = regional_edit.RegionalEdit.run_localize, regional_edit.RegionalEdit.gate_recolour
+    localize, gate = regional_edit.RegionalEdit.run_localize, strategies.Recolour.after_edits
 
     def with_rim(self):
-        localize(self)  # system.localize_with_truth: the true region
+        localize(self)  # system.ablation.localize_with_truth: the true region
         g, truth = self.geometry, self.scene.ground_truth.region.to(self.device)
         rim = torch.zeros_like(truth)
         rim[~truth] = neighbors.within_radius(g.means.detach()[~truth], g.means.detach()[truth], 0.03 * self.scene.extent)
         g.mask.copy_(truth | rim)
-        self.source_selection = rows.source_rows(g, truth | rim, self.n_source)
+        self.state.source_selection = rows.source_rows(g, truth | rim, self.n_source)
         seen.update(truth=truth.cpu(), rim=rim.cpu())
 
-    def recorded(self, weights):
-        gate(self, weights)
+    def recorded(self, system):
+        gate(self, system)
         if self.blend_votes is None:  # the gate is off
             return
-        seen["mask"] = self.geometry.mask.cpu().clone()
-        seen["watched"] = self.blend_votes[1].cpu() >= regional_edit.SEEN_MIN_WEIGHT  # by the edited views
+        seen["mask"] = system.geometry.mask.cpu().clone()
+        seen["watched"] = self.blend_votes[1].cpu() >= SEEN_MIN_WEIGHT  # by the edited views
 
     monkeypatch.setattr(regional_edit.RegionalEdit, "run_localize", with_rim)
-    monkeypatch.setattr(regional_edit.RegionalEdit, "gate_recolour", recorded)
-    # The gate on its own (with recolour_from_edits, tested below, the free rim's silhouette
-    # pixels come out 1.6 dB closer in the footprint at this budget; the gate's +2 dB outside holds).
-    recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.localize_with_truth=true",
-                "system.refine.iterations_per_cycle=20", "system.refine.recolour_from_edits=false")
-    assert launch(tmp_path, "gated", *recolour) == 0
-    gated, mask = metrics(trial(tmp_path, "gated")), seen["mask"]
+    monkeypatch.setattr(strategies.Recolour, "after_edits", recorded)
+    recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.ablation.localize_with_truth=true",
+                "system.refine.iterations_per_cycle=20")
+    launch(tmp_path, "gated", *recolour)
+    gated, mask = metrics_of(trial_of(tmp_path, "gated")), seen["mask"]
     truth, rim = seen["truth"] & seen["watched"], seen["rim"] & seen["watched"]  # what no edited view sees never trains
     assert int(rim.sum()) > 100
     assert float((rim & ~mask).sum()) > 0.7 * float(rim.sum()), (int((rim & ~mask).sum()), int(rim.sum()))
     assert float((truth & mask).sum()) > 0.75 * float(truth.sum()), (int((truth & mask).sum()), int(truth.sum()))
-    assert launch(tmp_path, "free", *recolour, "system.refine.min_edit_blend=0") == 0
-    free = metrics(trial(tmp_path, "free"))
+    launch(tmp_path, "free", *recolour, "system.refine.min_edit_blend=0")
+    free = metrics_of(trial_of(tmp_path, "free"))
     assert gated["psnr_outside_vs_true_edit"] > free["psnr_outside_vs_true_edit"] + 2.0, (gated, free)
     assert gated["psnr_region_vs_true_edit"] > free["psnr_region_vs_true_edit"] - 0.5
 
@@ -452,37 +452,14 @@ def test_a_recolour_the_gate_declines_entirely_says_so(tmp_path, monkeypatch):
     """When the edited views recolour none of the selected Gaussians by `min_edit_blend` (here the
     blend is forced to 0), each keeps its source colours and the scene comes out unchanged: the run
     says so in metrics.json `warnings` instead of passing a no-op off as an edit."""
-    from test_reliability import launch, metrics, trial
-    from gs_regional.systems import regional_edit
+    from gs_regional.edit import strategies
 
-    monkeypatch.setattr(regional_edit, "edit_blend", lambda edited, source: torch.zeros(edited.shape[:2]))
-    assert launch(tmp_path, "declined", "data.edit=recolor", "system.prompt=make his head red",
-                  "system.refine.iterations_per_cycle=6") == 0
-    m = metrics(trial(tmp_path, "declined"))
+    monkeypatch.setattr(strategies, "edit_blend", lambda edited, source: torch.zeros(edited.shape[:2]))
+    m = metrics_of(launch(tmp_path, "declined", "data.edit=recolor", "system.prompt=make his head red",
+                          "system.refine.iterations_per_cycle=6"))
     assert m["count_selected"] > 0 and m["count_recolour_taken"] == 0
     assert m["psnr_unedited"] == 120.0 and m["gaussians_added"] == 0
     assert any("recolour none of the" in w and "min_edit_blend" in w for w in m["warnings"]), m["warnings"]
-
-
-def test_a_short_recolour_reaches_the_edits_colours(tmp_path):
-    """3DGS's colour rate, even scaled up, carries a colour across the range in about as many
-    steps as a short refinement has, so a recolour's colours arrived late and dull (truth suite:
-    doubling the steps added 3 dB). Known answer: the demo's head turned red, the true region as
-    the selection, 3 cycles x 4 steps: with the colours of the Gaussians those views recolour
-    fully started from the first cycle's edited views, the footprint is far closer to the true
-    edit than with every colour started at the source's (16.0 against 10.7 dB when written), and
-    the rest of the scene does not pay for it."""
-    from test_reliability import launch, metrics, trial
-
-    recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.localize_with_truth=true")
-    assert launch(tmp_path, "started", *recolour, "system.refine.recolour_from_edits=true") == 0
-    assert launch(tmp_path, "source", *recolour) == 0  # the default: colours start at the source's
-    started, source = metrics(trial(tmp_path, "started")), metrics(trial(tmp_path, "source"))
-    assert 0.25 * started["count_recolour_taken"] < started["count_recolour_started"] < started["count_recolour_taken"]
-    assert "count_recolour_started" not in source
-    assert started["psnr_region_vs_true_edit"] > source["psnr_region_vs_true_edit"] + 3.0, (started, source)
-    assert started["psnr_outside_vs_true_edit"] > source["psnr_outside_vs_true_edit"] - 1.0, (started, source)
-    assert started["gaussians_added"] == 0 and started["psnr_unedited"] >= 50.0
 
 
 def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
@@ -523,14 +500,14 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     assert distinct_parts(small, small_blend, torch.ones(45, dtype=torch.bool), 0.85, min_core_fraction=0.1)[5:].all()
 
 
-def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path):
+def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path, monkeypatch):
     """Known answer on the synthetic figure ("make his head red": the head's Gaussians turn red,
     its eyes do not): selected with the head, the eyes take about half of the edit in every edited
     view, which passes the blend gate (`min_edit_blend` 0.5); as a distinct part
-    (`distinct_part_blend`) they keep their source colours, and the head is recoloured as much
+    (DISTINCT_PART_BLEND) they keep their source colours, and the head is recoloured as much
     as with the rule off. The output keeps the source's rows in order (a recolour adds none)."""
-    from test_reliability import launch, metrics, trial
     from trial_helpers import ply_arrays
+    from gs_regional.edit import strategies
     from gs_regional.sim.scene import make_scene
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "data.width=48", "data.height=48",
@@ -539,9 +516,10 @@ def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path):
     _, labels, names = make_scene(0, 6000, 4000)
     eyes, head = (labels == names.index("eyes")).numpy(), (labels == names.index("head")).numpy()
     moved = {}
-    for name, blend in (("kept", "0.85"), ("free", "0")):
-        assert launch(tmp_path, name, *recolour, f"system.refine.distinct_part_blend={blend}") == 0
-        m, ply = metrics(trial(tmp_path, name)), ply_arrays(trial(tmp_path, name) / "save" / "edited.ply")
+    for name, blend in (("kept", strategies.DISTINCT_PART_BLEND), ("free", 0.0)):  # 0: the rule off
+        monkeypatch.setattr(strategies, "DISTINCT_PART_BLEND", blend)
+        launch(tmp_path, name, *recolour)
+        m, ply = metrics_of(trial_of(tmp_path, name)), ply_arrays(trial_of(tmp_path, name) / "save" / "edited.ply")
         assert m["gaussians_added"] == 0 and len(ply["f_dc_0"]) == len(labels)
         dc = np.stack([ply[f"f_dc_{i}"] for i in range(3)], -1)
         moved[name] = (m, dc)
