@@ -10,12 +10,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from trial_helpers import ROOT
 from gs_regional.config import ConfigError, load_config, parse_structured, scheduled
 from gs_regional.registry import RegistryError, find, note_import_error, register
 from gs_regional.systems.base import BaseSystem, capture_rng_state, restore_rng_state
 from gs_regional.utils import visualize
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 # ----- registry ------------------------------------------------------------------------------
@@ -102,8 +102,8 @@ FLOORS = {
 
 def test_each_floor_imports_only_from_below():
     offenders = []
-    for path in sorted((REPO / "gs_regional").rglob("*.py")):
-        rel = path.relative_to(REPO / "gs_regional").with_suffix("")
+    for path in sorted((ROOT / "gs_regional").rglob("*.py")):
+        rel = path.relative_to(ROOT / "gs_regional").with_suffix("")
         own = rel.parts[0]
         if own == "__init__":
             continue
@@ -142,8 +142,8 @@ def import_graph(top_level_only=True):
     import ast
 
     modules = {}
-    for path in sorted((REPO / "gs_regional").rglob("*.py")):
-        parts = path.relative_to(REPO).with_suffix("").parts
+    for path in sorted((ROOT / "gs_regional").rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
         is_package = parts[-1] == "__init__"
         modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
     graph = {}
@@ -469,7 +469,7 @@ def test_rng_state_roundtrip():
 def test_example_plugin_loads_and_desaturates_the_colourful_region():
     from gs_regional.launch import load_plugins
 
-    results = load_plugins(REPO / "custom")
+    results = load_plugins(ROOT / "custom")
     assert results.get("custom/example_plugin.py", "missing") is None, results
     editor = find("grayscale-editor", kind="guidance")({"strength": 1.0})
     img = torch.full((1, 16, 16, 3), 0.5)

@@ -9,19 +9,18 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import lightning  # noqa: F401  (imported here so its log handler binds to the real stderr)
 import pytest
 import torch
 import yaml
 
+from trial_helpers import ROOT
 from gs_regional.launch import load_plugins, main
 from gs_regional.launch.callbacks import StageProgressBar, StageProgressLines, progress_callback
 from gs_regional.launch.checkpoints import DiskFullError, load_checkpoint_file, save_atomic
 from gs_regional.registry import note_import_error
 
-REPO = Path(__file__).resolve().parents[1]
 
 TINY_PLUGIN = '''
 import random
@@ -308,7 +307,7 @@ def test_launch_py_subprocess_exit_code(tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("name: x\nsytem_type: tiny-system\n")
     proc = subprocess.run(
-        [sys.executable, str(REPO / "launch.py"), "--config", str(cfg), "--train", "--custom-dir", str(tmp_path)],
+        [sys.executable, str(ROOT / "launch.py"), "--config", str(cfg), "--train", "--custom-dir", str(tmp_path)],
         capture_output=True, text=True, timeout=120, cwd=tmp_path,
     )
     assert proc.returncode == 2, proc.stderr

@@ -2,16 +2,15 @@
 drops the keys of the YAML's old type, `section=null` clears a section, and a key the type does
 not take fails naming the key and both fixes."""
 import logging
-from pathlib import Path
 
 import pytest
 
+from trial_helpers import ROOT
 from gs_regional.config import ConfigError, load_config, parse_structured
 from gs_regional.launch import load_plugins, main
 from gs_regional.launch.sections import section_configs
 from gs_regional.registry import find, load_builtins
 
-ROOT = Path(__file__).resolve().parents[1]
 EDIT = str(ROOT / "configs" / "edit.yaml")
 DROPPED = "dtype, guidance_scale, image_guidance_scale, num_inference_steps, pretrained"
 

@@ -6,15 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from trial_helpers import launch
 from gs_regional.launch import trial as trial_module
-from gs_regional.launch.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def launch_demo(exp_root_dir) -> int:
-    return main(["--config", str(ROOT / "configs" / "demo.yaml"), "--train", f"exp_root_dir={exp_root_dir}",
-                 "trainer.enable_progress_bar=false"])
 
 
 @pytest.fixture
@@ -31,7 +25,7 @@ def read_only_mount(tmp_path):
 
 
 def test_read_only_exp_root_dir_is_one_line_and_exit_2(read_only_mount, capsys):
-    assert launch_demo(read_only_mount / "outputs") == 2
+    launch(read_only_mount / "outputs", "demo", expect=2)
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"error: the trial folder {read_only_mount / 'outputs'}"), err
     assert "read-only file system" in err[-1] and "exp_root_dir=" in err[-1]
@@ -47,7 +41,7 @@ def test_a_refused_trial_folder_names_it(tmp_path, monkeypatch, capsys):
         return real_mkdir(self, *args, **kwargs)
 
     monkeypatch.setattr(trial_module.Path, "mkdir", mkdir)
-    assert launch_demo(tmp_path / "outputs") == 2
+    launch(tmp_path / "outputs", "demo", expect=2)
     (line,) = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error:")]
     assert line.startswith(f"error: the trial folder {tmp_path / 'outputs'}")
     assert line.endswith("read-only file system; set exp_root_dir= to a writable folder")

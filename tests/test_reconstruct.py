@@ -1,7 +1,6 @@
 """The `reconstruct` system end to end through launch.py, on small fast scenes: outputs, progressive
 SH, resuming across densification, random initialisation, and the error for a scene without photos."""
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,10 +8,9 @@ import torch
 from omegaconf import OmegaConf
 
 from conftest import shared_path
-from trial_helpers import metrics_of, ply_arrays, trial_of
+from trial_helpers import ROOT, launch, metrics_of, ply_arrays
 from gs_regional.launch import main
 
-ROOT = Path(__file__).resolve().parents[1]
 CONFIG = str(ROOT / "configs" / "reconstruct.yaml")
 
 # The face scene at 32x32 px, 16 of its 65 cameras (2 held out), 120 steps, densifying every 20 so
@@ -28,13 +26,7 @@ FACE_SMALL = [
 ]
 
 
-def launch(tmp, name, *overrides, expect=0):
-    argv = ["--config", CONFIG, "--train", f"exp_root_dir={tmp}", f"name={name}", *overrides]
-    assert main(argv) == expect
-    return trial_of(tmp, name) if expect == 0 else None
-
-
-
+FIT = {"config": CONFIG, "small": False}  # launch's settings for a fit of configs/reconstruct.yaml
 
 
 def geometry_state(ckpt):
@@ -47,10 +39,11 @@ def face_runs(tmp_path_factory):
     """An uninterrupted fit of STEPS steps, and one stopped at step HALF then resumed to STEPS."""
     face = str(shared_path("face"))
     tmp = tmp_path_factory.mktemp("reconstruct")
-    full = launch(tmp, "full", f"data.source={face}", *FACE_SMALL)
-    half = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"trainer.max_steps={HALF}")
+    full = launch(tmp, "full", f"data.source={face}", *FACE_SMALL, **FIT)
+    half = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"trainer.max_steps={HALF}", **FIT)
     at_half = geometry_state(os.path.join(half, "ckpts", "last.ckpt"))
-    resumed = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"resume={os.path.join(half, 'ckpts', 'last.ckpt')}")
+    resumed = launch(tmp, "cut", f"data.source={face}", *FACE_SMALL, f"resume={os.path.join(half, 'ckpts', 'last.ckpt')}",
+                     **FIT)
     assert resumed == half  # resuming reuses the trial dir
     return {"full": full, "resumed": resumed, "at_half": at_half}
 
@@ -106,13 +99,9 @@ def test_random_init_on_a_scene_without_points(tmp_path):
     cfg.data_type, cfg.data = "synthetic-scene", {"n_cameras": 12, "width": 32, "height": 32}
     config = tmp_path / "synthetic.yaml"
     OmegaConf.save(cfg, config)
-    argv = [
-        "--config", str(config), "--train", f"exp_root_dir={tmp_path}", "name=synthetic",
-        "system.random_points=2000", "system.max_steps=60", "system.densify.start=20", "system.densify.every=20",
-        "trainer.enable_progress_bar=false", "checkpoint.every_n_train_steps=1000",
-    ]
-    assert main(argv) == 0
-    trial = trial_of(tmp_path, "synthetic")
+    trial = launch(tmp_path, "synthetic", "system.random_points=2000", "system.max_steps=60", "system.densify.start=20",
+                   "system.densify.every=20", "trainer.enable_progress_bar=false", "checkpoint.every_n_train_steps=1000",
+                   config=config, small=False)
     m = metrics_of(trial)
     assert m["steps"] == 60 and m["held_out"]
     assert len(ply_arrays(os.path.join(trial, "save", "reconstructed.ply"))["x"]) == m["n_gaussians"]
@@ -121,7 +110,7 @@ def test_random_init_on_a_scene_without_points(tmp_path):
 
 def test_scene_without_photos_is_a_clear_error(tmp_path, capsys):
     face = str(shared_path("face"))
-    launch(tmp_path, "nophotos", f"data.source={face}", "data.load_images=false", *FACE_SMALL, expect=2)
+    launch(tmp_path, "nophotos", f"data.source={face}", "data.load_images=false", *FACE_SMALL, expect=2, **FIT)
     err = capsys.readouterr().err
     assert "reconstruct needs photos" in err and face in err, err
     assert "Traceback" not in err
@@ -129,7 +118,7 @@ def test_scene_without_photos_is_a_clear_error(tmp_path, capsys):
 
 def test_bad_init_is_a_config_error(tmp_path, capsys):
     face = str(shared_path("face"))
-    launch(tmp_path, "badinit", f"data.source={face}", "system.init=sfm", expect=2)
+    launch(tmp_path, "badinit", f"data.source={face}", "system.init=sfm", expect=2, **FIT)
     assert "system.init must be 'points' or 'random'" in capsys.readouterr().err
 
 

@@ -6,14 +6,13 @@ the simulated editor and depth use unchanged, and a regional edit end to end."""
 import math
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from conftest import shared_path
-from trial_helpers import metrics_of, trial_of
+from trial_helpers import ROOT, metrics_of, trial_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json
 from gs_regional.edit.localize import render_selection
@@ -25,7 +24,6 @@ from gs_regional.sim.scene import make_scene
 from gs_regional.sim.splat_truth import SplatTruthDataModule, object_frame, orbit_cameras
 from gs_regional.sim.truth import TruthRenderer
 
-ROOT = Path(__file__).resolve().parents[1]
 PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 Y_UP = [0.0, 1.0, 0.0]
 

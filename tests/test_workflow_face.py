@@ -11,9 +11,9 @@ from plyfile import PlyData
 
 from conftest import shared_path
 from tiny_models_fixture import tiny_models  # noqa: F401
+from trial_helpers import ROOT
 from gs_regional.launch import main
 
-ROOT = Path(__file__).resolve().parents[1]
 # The README's commands use data.downscale=4 and the configs' budgets; here 64x64 px, 16 cameras.
 DATA = ["data.downscale=8", "data.max_cameras=16"]
 
