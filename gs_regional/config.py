@@ -15,7 +15,7 @@ import difflib
 import logging
 import numbers
 import os
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any, Callable, Collection, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
 
 from omegaconf import DictConfig, OmegaConf
@@ -29,6 +29,26 @@ TYPE_SUFFIX = "_type"  # `<section>_type` names the registered class that reads 
 
 class ConfigError(ValueError):
     """A configuration problem; the message names the file or key at fault."""
+
+
+def need(ok: bool, key: str, allowed: str, value: Any) -> None:
+    """A component's range check at build time: ConfigError "<key> must be <allowed>, got <value>"
+    (`key` the full key, e.g. "system.refine.m")."""
+    if not ok:
+        raise ConfigError(f"{key} must be {allowed}, got {value!r}")
+
+
+def retired_key_message(cls: type, name: str, key: str) -> Optional[str]:
+    """The one line for a key `name` (full key `key`) that the dataclass `cls` no longer takes: it
+    moved (`MOVED_KEYS` {old: new full key}) or was removed (`REMOVED_KEYS` {old: what to do});
+    None for a key it never had."""
+    moved = getattr(cls, "MOVED_KEYS", {}).get(name)
+    if moved:
+        return f"config key '{key}' has moved: use '{moved}'"
+    removed = getattr(cls, "REMOVED_KEYS", {}).get(name)
+    if removed:
+        return f"config key '{key}' was removed: {removed}"
+    return None
 
 
 def _full_key(where: str, e: OmegaConfBaseException) -> str:
@@ -47,7 +67,8 @@ def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "", label: 
     """Merge a plain/OmegaConf mapping into the dataclass `cfg_cls`, rejecting unknown keys.
 
     A dataclass may name keys that moved elsewhere in a class attribute `MOVED_KEYS`
-    ({old key: new full key}); using one fails with the new name.
+    ({old key: new full key}) and keys that were removed in `REMOVED_KEYS` ({old key: what to do
+    instead}); using one fails with one line that says so.
 
     `where` names the YAML section (e.g. "system") so errors point at the full key
     (e.g. 'system.geometry.plyy', also inside nested dataclasses). Without it, `label` (e.g. the
@@ -76,9 +97,9 @@ def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "", label: 
         key = _full_key(prefix, e)
         owner = getattr(e, "object_type", None)
         owner = owner if owner is not None and is_dataclass(owner) else cfg_cls
-        moved = getattr(owner, "MOVED_KEYS", {}).get(str(e.key))
-        if moved:
-            raise ConfigError(f"config key '{key}' has moved: use '{moved}'") from None
+        retired = retired_key_message(owner, str(e.key), key)
+        if retired:
+            raise ConfigError(retired) from None
         allowed = [f.name for f in fields(owner)]
         raise ConfigError(unknown_key_message(key, allowed, owner.__qualname__, is_path=bool(where))) from None
     except ValidationError as e:
@@ -89,6 +110,45 @@ def parse_structured(cfg_cls: Type[T], cfg: Any = None, where: str = "", label: 
     except OmegaConfBaseException as e:
         key = _full_key(prefix, e) or cfg_cls.__qualname__
         raise ConfigError(f"config error at '{key}': {_first_line(e)}") from None
+
+
+def check_saved_config(saved: Any, cls: type, cfg: Any, where: str) -> None:
+    """Resuming from a checkpoint whose config (`saved`, the section `where` of the dataclass `cls`,
+    `cfg` the config now) holds a retired key: a removed key at another value than the method now
+    has (`RETIRED_VALUES` {key: that value}), or a moved key (`MOVED_KEYS` {key: new full key})
+    at another value than the new key has now, stops with one line naming it."""
+    if not hasattr(saved, "get") or not is_dataclass(cls):
+        return
+    root = cfg
+
+    def now(full_key: str) -> Any:
+        node = root
+        for part in full_key.split(".")[1:]:
+            if not hasattr(node, part):
+                return None
+            node = getattr(node, part)
+        return node
+
+    def walk(section: Any, owner: type, prefix: str) -> None:
+        for key, value in getattr(owner, "RETIRED_VALUES", {}).items():
+            old = section.get(key)
+            if old is not None and old != value:
+                raise ConfigError(f"the checkpoint was written with {prefix}.{key}={old!r}, a setting that was removed "
+                                  f"(the method now always runs as with {value!r}): start a new run")
+        for key, new in getattr(owner, "MOVED_KEYS", {}).items():
+            old, value = section.get(key), now(new)
+            if old is not None and value is not None and old != value:
+                raise ConfigError(f"the checkpoint was written with {prefix}.{key}={old!r}, which has moved to {new} "
+                                  f"(now {value!r}): resume with {new}={old!r} or start a new run")
+        for f in fields(owner):
+            if is_dataclass(f.type if isinstance(f.type, type) else None) and hasattr(section.get(f.name), "get"):
+                walk(section.get(f.name), f.type, f"{prefix}.{f.name}")
+            elif f.default_factory is not MISSING and hasattr(section.get(f.name), "get"):
+                sub = f.default_factory()
+                if is_dataclass(sub):
+                    walk(section.get(f.name), type(sub), f"{prefix}.{f.name}")
+
+    walk(saved, cls, where)
 
 
 def unknown_key_message(key: str, allowed: Collection[str], owner: str, is_path: bool = True) -> str:
@@ -174,13 +234,14 @@ class ExperimentConfig:
 SectionConfigs = Callable[[str, str], Optional[Sequence[type]]]
 
 
-def _section_keys(configs: Sequence[type]) -> Tuple[List[str], Dict[str, str]]:
-    """(the keys, the moved keys {old: new full key}) of the Config dataclasses of a section."""
+def _section_keys(configs: Sequence[type]) -> Tuple[List[str], Dict[str, type]]:
+    """(the keys, {retired key: the Config that retired it (MOVED_KEYS, REMOVED_KEYS)}) of the
+    Config dataclasses of a section."""
     known = sorted({f.name for c in configs for f in fields(c)})
-    moved: Dict[str, str] = {}
+    retired: Dict[str, type] = {}
     for c in configs:
-        moved.update(getattr(c, "MOVED_KEYS", {}))
-    return known, moved
+        retired.update({k: c for k in (*getattr(c, "MOVED_KEYS", {}), *getattr(c, "REMOVED_KEYS", {}))})
+    return known, retired
 
 
 def _leaves(tree: Any, prefix: str = "") -> Dict[str, Any]:
@@ -268,12 +329,12 @@ def _check_type_sections(cfg: DictConfig, section_configs: SectionConfigs) -> No
         if not isinstance(given, DictConfig) or not given:
             continue
         configs = section_configs(type_key, name)
-        known, moved = _section_keys(configs or ())
+        known, retired = _section_keys(configs or ())
         if not known:  # unknown, or a Config without fields: the type's own parsing decides
             continue
         for key in sorted(str(k) for k in given.keys()):
-            if key in moved:
-                raise ConfigError(f"config key '{section}.{key}' has moved: use '{moved[key]}'")
+            if key in retired and key not in known:
+                raise ConfigError(retired_key_message(retired[key], key, f"{section}.{key}"))
             if key not in known:
                 raise ConfigError(unknown_key_message(f"{section}.{key}", known, f"{type_key}={name}"))
 

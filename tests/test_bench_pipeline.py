@@ -58,7 +58,7 @@ def test_tiny_pipeline_report(report):
     # edit changes nothing beyond its noise, but its view shows the selection as well as any, so
     # no other view is edited); cycle 1 (t <= 750: 3 of the DDIM timesteps 751/501/251/1) on the
     # 2 views besides the first (the depth shows no trusted change, so the shape may change:
-    # refine.first_cycle_first_view=skip), cycle 2 (t <= 500: 2 steps) on 3.
+    # an addition's first cycle), cycle 2 (t <= 500: 2 steps) on 3.
     assert regional["unet_evals"] == 4 * 2 + 4 * 3 + 2 * 3 * 3 + 3 * 2 * 3
     # VAE: 4 localization encodes, 1 for the full edit's condition, 2 per partial edit (render + condition).
     assert (regional["vae_encodes"], regional["vae_decodes"]) == (4 + 1 + 2 * 5, 1 + 5)

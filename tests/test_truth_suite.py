@@ -142,18 +142,20 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
     assert "2 runs a case" in out and "1 cases in both" in out and "| c02 | " in out
 
 
-def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path):
+def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path, monkeypatch):
     """Known cause (draw 536750 c18, a big ball on the figure's head: 43.8 dB outside its true
     footprint): the ball is placed from the first edited view, which the editor draws a pixel or
     two off, and at 3DGS's position rate (made for 30k steps) refinement's 180 steps moved it too
     little to follow the other views: its centre stayed 0.07 (a third of its radius) to the side
     of the true one, a crescent outside the true footprint in every held-out view. At
-    refine.added_position_lr_scale=3 (the default) it moves: more gain and more than 2 dB more
+    ADDED_POSITION_LR_SCALE=3 (gs_regional/edit/strategies.py) it moves: more gain and more than 2 dB more
     outside the footprint than at 1, and no source Gaussian is deleted either way."""
+    from gs_regional.edit import strategies
+
     runs = {}
     for scale in (1, 3):
-        payload = suite.run_suite(536750, 24, False, str(tmp_path / f"scale{scale}"),
-                                        [f"system.refine.added_position_lr_scale={scale}"], only=["c18"])
+        monkeypatch.setattr(strategies, "ADDED_POSITION_LR_SCALE", float(scale))
+        payload = suite.run_suite(536750, 24, False, str(tmp_path / f"scale{scale}"), [], only=["c18"])
         (r,) = payload["records"]
         assert r["kind"] == "add_large" and r["source_deleted"] == 0
         runs[scale] = r

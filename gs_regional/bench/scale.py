@@ -211,8 +211,7 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
             def run():
                 with torch.no_grad():
                     lifted = localize_gaussians(
-                        model, renderer, cams, masks, threshold=lc.mask_threshold,
-                        reweight_iters=lc.reweight_iters, agreement_power=lc.agreement_power, knn=lc.knn,
+                        model, renderer, cams, masks, threshold=lc.mask_threshold, knn=lc.knn,
                     )
                     selected = expand_selection(means, lifted["selected"], 0.01 * SCENE_EXTENT)
                     for view in lifted["views"]:  # the render-back, from the views' kept weights

@@ -62,10 +62,10 @@ def regional_budget(cycles: int, iterations: int, m: int, t_schedule: Sequence[i
 
 # The method's parts switched off one at a time (README "Ablations").
 ABLATIONS = {
-    "plain-vote": ["system.localization.reweight_iters=0", "system.localization.knn=1"],  # the paper's vote
-    "no-depth-init": ["system.initialize=false"],
-    "constant-t": ["system.refine.constant_t=500"],
-    "optimize-all": ["system.refine.optimize_all=true"],
+    "plain-vote": ["system.ablation.plain_vote=true"],  # the paper's vote
+    "no-depth-init": ["system.ablation.initialize=false"],
+    "constant-t": ["system.ablation.constant_t=500"],
+    "optimize-all": ["system.ablation.optimize_all=true"],
 }
 
 

@@ -40,19 +40,17 @@ def match_colors(image: torch.Tensor, reference: torch.Tensor, pixels: torch.Ten
     return out.clamp(0, 1)
 
 
-
 # A regenerated view's tone drifts by a few percent; a larger gain fitted on the calm pixels comes
 # from their narrow range of colours (a sliver of one material) and would not hold for the rest.
 MAX_TONE_GAIN = 1.25
 MIN_TONE_PIXELS = 64  # fewer calm pixels of the object than this: no tone fit
 # A blob of change touching the region counts as an object grown out of it when at least this
-# share of it lies over what is behind the region (or near it). Measured: a big ball on a head
-# seen from the side 1.0; a moustache drawn on the head when the body was selected, 0.53.
+# share of it lies over what is behind the region (or near it): an object added on a part grows
+# over what lies behind it (all of it), an edit of a neighbouring part does not (about half).
 BLOB_BEHIND = 0.75
 # ... and when it rests on the region along a good part of its width: its pixels in the margin at
-# least this share of margin x sqrt(its size) (a width-scale contact, the same at any resolution).
-# Measured: big balls on heads 0.84 and 1.33; a moustache drawn 16 px off the head, over the wall,
-# touching the margin at a corner, 0.18 (the stability sweep's position jitter: a stop).
+# least this share of margin x sqrt(its size) (a width-scale contact, the same at any resolution):
+# an object resting on a part touches it along its width, one placed off the part at a corner.
 BLOB_CONTACT = 0.5
 
 

@@ -11,13 +11,13 @@ from gs_regional.utils.image import dilate
 
 
 # The reference never falls below this: an edit whose best-recoloured Gaussians take less of its
-# colour reaches none of them (the face patches' best took about 0.45), and a reference of 0
+# colour reaches none of them, and a reference of 0
 # would let every selected Gaussian through when the views recolour nothing.
 MIN_GATE_REFERENCE = 0.3
 
 
 def recoloured(num: torch.Tensor, den: torch.Tensor, seen: torch.Tensor, min_blend: float,
-               reference_quantile: float = 0.99) -> torch.Tensor:
+               reference_quantile: float) -> torch.Tensor:
     """(N,) bool: the `seen` Gaussians whose mean edit_blend (`num` / `den`, rendering-weighted
     over their views) reaches `min_blend` times the blend the `reference_quantile` of the seen
     ones reach, kept within [MIN_GATE_REFERENCE, 1] (`reference_quantile` 0: `min_blend` itself).

@@ -1,19 +1,23 @@
 """§3.2: new Gaussians for the region from calibrated monocular depth of the first edited view."""
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, List, Optional
 
 import torch
 import torch.nn.functional as F
 
+from gs_regional.config import need
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
 from gs_regional.edit.change import match_colors, real_change
 from gs_regional.geometry.neighbors import quantile_box, within_radius
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -48,6 +52,12 @@ class InitConfig:
     # is wide) reaches past 0.25 of it (docs/method.md).
     max_distance: float = 0.5
     median: int = 3  # median filter of the monocular disparities: isolated wrong pixels make floaters
+
+    def check(self, where: str = "system.init") -> None:
+        need(0 <= self.alpha_min <= 1, f"{where}.alpha_min", "a number in [0, 1]", self.alpha_min)
+        need(self.stride >= 1, f"{where}.stride", "an integer >= 1", self.stride)
+        need(self.max_new >= 0, f"{where}.max_new", "an integer >= 0", self.max_new)
+        need(0 < self.opacity < 1, f"{where}.opacity", "a number in (0, 1)", self.opacity)
 
 
 def median_filter(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -354,3 +364,54 @@ def new_gaussians_from_depth(
     }
     report["added"] = k
     return params, report, d_new
+
+
+@dataclass
+class DepthInit:
+    """The view depth initialization uses, and what `new_gaussians_from_depth` made of it."""
+
+    view: int
+    edited: torch.Tensor  # its full edit
+    params: dict  # the new Gaussians ({} when none)
+    report: dict  # metrics.json `init`
+    d_new: Optional[torch.Tensor]  # (H, W) the new depth, None when nothing was placed
+    disparities: torch.Tensor  # (2, H, W) the monocular disparities of the unedited and the edited view
+
+
+def initialize_from_views(
+    order: List[int],  # the first view, then the others by region size
+    edit: Callable[[int], torch.Tensor],  # view -> its full edit
+    source: Callable[[int], torch.Tensor],  # view -> (H, W, 3) the source render
+    camera: Callable[[int], Camera],
+    render: Callable[[int], dict],  # view -> the current scene's render ("depth", "alpha")
+    disparity: Callable[[torch.Tensor, List[Camera]], torch.Tensor],  # the depth estimator
+    region: Callable[[int], torch.Tensor],  # view -> (H, W) bool, the 2D region
+    cfg: InitConfig,
+    sh_degree: int,
+    region_means: Optional[torch.Tensor] = None,
+) -> DepthInit:
+    """§3.2 steps 2-5 from the first view of `order`; while its depth shows no change of shape,
+    from the next (up to `cfg.views` views): one edit can draw a thin new object a few pixels off,
+    and its depth then shows no change of shape. The first view whose depth shows a change is used
+    (else the first); a first view whose calibration is rejected ends the search."""
+    found = None
+    for k, u in enumerate(order):
+        if k:
+            log.info("initialize: the depth of view %d shows no change of shape; checking the edit of view %d",
+                     order[k - 1], u)
+        cam, unedited, edited = camera(u), source(u), edit(u)
+        out = render(u)
+        disp = disparity(torch.stack([unedited, edited]), [cam, cam])
+        params, report, d_new = new_gaussians_from_depth(
+            cam, unedited, edited, region(u), out["depth"], out["alpha"], disp[0], disp[1], cfg, sh_degree,
+            region_means=region_means)
+        # A later view's calibration rejected for a poor fit is no evidence either way; a change of
+        # shape seen without calibration (the region fills the view) is.
+        shows_change = ("rejected" not in report and report["added"] > 0) or \
+            bool((report.get("uncalibrated") or {}).get("shape_changed"))
+        if k == 0 or shows_change:
+            found = DepthInit(u, edited, params, report, d_new, disp)
+        if (k == 0 and "rejected" in report) or shows_change:
+            break
+    found.report["views_checked"] = order[: k + 1]
+    return found

@@ -1,16 +1,78 @@
 """§3.1: lift per-view 2D masks to a per-Gaussian mask and render it back."""
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from dataclasses import dataclass
+from typing import Callable, ClassVar, Dict, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
 
+from gs_regional.config import need
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
+from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection  # noqa: F401 (part of this stage's API)
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.sh import sh_to_color
+
+# The lift's robustness steps (localize_gaussians):
+REWEIGHT_ITERS = 2  # re-lifts with each view weighted by its agreement with the 3D mask
+AGREEMENT_POWER = 2.0  # a view's weight: IoU(2D mask, rendered 3D mask) ** this
+# A Gaussian's votes from a mask's one-pixel edge are dropped where its own colour is closer to the
+# outside's local mean than to the interior's by this factor: blobby relevance maps reach a pixel
+# past the region, and a surface seen edge-on beside it (a neck under a head) would be selected whole.
+EDGE_COLOUR_RATIO = 0.5
+# The views-disagree stop counts a mask pixel within this many pixels of the other mask as shared:
+# a part a few pixels across, its masks a pixel off, is the same place.
+AGREEMENT_TOLERANCE_PX = 1
+
+
+@dataclass
+class LocalizeConfig:
+    """`system.localization` (§3.1; docs/method.md "Localize")."""
+
+    REMOVED_KEYS: ClassVar[Dict[str, str]] = {
+        "reweight_iters": "the lift re-weights its views as the method does; system.ablation.plain_vote=true gives "
+                          "the paper's vote (no re-weighting, no neighbour pooling); remove the key",
+        **{key: "it is a fixed part of the method now (gs_regional/edit/localize.py); remove the key"
+           for key in ("agreement_power", "edge_colour_ratio", "agreement_tolerance_px")},
+    }
+    # The values a removed key had to have for an older checkpoint to resume as the method now runs.
+    RETIRED_VALUES: ClassVar[Dict[str, object]] = {
+        "reweight_iters": REWEIGHT_ITERS, "agreement_power": AGREEMENT_POWER, "edge_colour_ratio": EDGE_COLOUR_RATIO,
+        "agreement_tolerance_px": AGREEMENT_TOLERANCE_PX,
+    }
+    max_views: int = 24  # views rendered for the 2D relevance maps, spread over the cameras
+    timestep: int = 600  # τ of the noise difference
+    gamma: float = 0.6  # threshold of the normalised relevance; 0 selects everything
+    samples: int = 1  # noise draws averaged per view
+    blur_sigma: float = 2.0  # Gaussian filter that removes isolated specks (pixels)
+    mask_threshold: float = 0.5  # a Gaussian is selected if its weighted mask vote exceeds this
+    knn: int = 16  # pool votes over the k nearest Gaussians (point expansion)
+    expand_radius: float = 0.0  # also select everything within this radius, as a fraction of the scene extent
+    # The views disagree about the region when, even in the better half of them (side views may
+    # miss it), the 2D masks overlap the rendered 3D mask by less than this (mean IoU): the
+    # instruction names nothing the editor finds consistently, and the run stops with the source
+    # written unchanged. 0 never stops.
+    min_view_agreement: float = 0.3
+    # The first full edit checked against the selection, without ground truth: the fraction of the
+    # editor's change beyond its noise in that view within 2 px of the localized region
+    # (metrics.json `edit_coverage`; gs_regional/edit/first_view.py). Below this, most of what the
+    # editor changes is not what localization selected, and the run stops with the source written
+    # unchanged. 0 never stops.
+    min_edit_coverage: float = 0.5
+
+    def check(self, where: str = "system.localization", num_train_timesteps: int = 1000) -> None:
+        need(self.max_views >= 1, f"{where}.max_views", "an integer >= 1", self.max_views)
+        need(0 <= self.timestep < num_train_timesteps, f"{where}.timestep",
+             f"a timestep in [0, {num_train_timesteps - 1}]", self.timestep)
+        need(self.samples >= 1, f"{where}.samples", "an integer >= 1", self.samples)
+
+    def lift(self, plain_vote: bool = False) -> dict:
+        """The keyword arguments of `localize_gaussians` (`plain_vote`: the paper's vote, no view
+        re-weighting nor neighbour pooling)."""
+        return dict(threshold=self.mask_threshold, reweight_iters=0 if plain_vote else REWEIGHT_ITERS,
+                    agreement_power=AGREEMENT_POWER, knn=1 if plain_vote else self.knn, edge_ratio=EDGE_COLOUR_RATIO)
 
 
 @torch.no_grad()
@@ -128,7 +190,7 @@ def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) 
 
 def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
-    reweight_iters: int = 2, agreement_power: float = 2.0, knn: int = 16,
+    reweight_iters: int = REWEIGHT_ITERS, agreement_power: float = AGREEMENT_POWER, knn: int = 16,
     images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, reuse: Optional[dict] = None,
 ) -> dict:
     """§3.1 step 4 with three robustness steps of our own (all can be switched off):
@@ -190,14 +252,32 @@ def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float)
 
 
 @torch.no_grad()
-def render_selection(model, renderer, camera: Camera, selected: torch.Tensor) -> torch.Tensor:
-    """Render a per-Gaussian selection back into a view: (H, W) in [0, 1], the fraction of the
-    pixel's colour that comes from selected Gaussians."""
-    feat = selected.float()[:, None].to(model.means.device)
-    return renderer.render(model, camera, override_color=feat)["rgb"][..., 0].clamp(0, 1)
-
-
-@torch.no_grad()
 def splat_selection(view: PixelWeights, selected: torch.Tensor) -> torch.Tensor:
     """`render_selection` from a view's kept weights (no new render)."""
     return view.splat(selected.float()[:, None])[..., 0].clamp(0, 1)
+
+
+@torch.no_grad()
+def localize_selection(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], images: torch.Tensor,
+                       cfg: LocalizeConfig, extent: float, plain_vote: bool = False,
+                       agree: Callable[[torch.Tensor], torch.Tensor] = lambda x: x) -> tuple:
+    """§3.1 steps 4-5 from the views' 2D `masks`: the lift (`localize_gaussians` with `cfg`'s
+    settings), point expansion, and how well the views agree with the selection. `agree`: the
+    selection every process of a run on several devices edits (rank 0's). Returns (selected (N,)
+    bool, the lift's result with its keywords ("lift") and "cameras", metrics {"view_weights",
+    "view_agreement": the mean IoU of the 2D masks with the selection in the better half of the
+    views})."""
+    lift = dict(cfg.lift(plain_vote), images=images)
+    lifted = dict(localize_gaussians(model, renderer, cameras, masks, **lift), lift=lift, cameras=list(cameras))
+    selected = agree(expand_selection(model.means.detach(), lifted["selected"], cfg.expand_radius * extent))
+    iou = mask_agreement(lifted["views"], masks, selected, faint=True, tolerance_px=AGREEMENT_TOLERANCE_PX)
+    metrics = {"view_weights": [round(float(w), 3) for w in lifted["view_weights"]],
+               "view_agreement": float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())}
+    return selected, lifted, metrics
+
+
+def views_disagree(agreement: float, min_view_agreement: float) -> str:
+    """The warning of a run that stops because the views disagree about the region."""
+    return (f"localize: the views disagree about the region (its 2D masks overlap the lifted 3D mask by IoU "
+            f"{agreement:.2f} in the better half of the views, below system.localization.min_view_agreement="
+            f"{min_view_agreement}); the instruction names nothing the editor finds consistently.")

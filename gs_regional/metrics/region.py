@@ -20,6 +20,16 @@ import torch
 from gs_regional.metrics.image import psnr, ssim
 
 
+SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over a set of views: a Gaussian they see
+
+
+@torch.no_grad()
+def render_selection(model, renderer, camera, selected: torch.Tensor) -> torch.Tensor:
+    """Render a per-Gaussian selection into a view: (H, W) in [0, 1], the fraction of the pixel's
+    colour that comes from selected Gaussians."""
+    feat = selected.float()[:, None].to(model.means.device)
+    return renderer.render(model, camera, override_color=feat)["rgb"][..., 0].clamp(0, 1)
+
 def footprint(weights: torch.Tensor, threshold: float = 0.1) -> torch.Tensor:
     """(..., H, W) bool: pixels whose rendered weight of the true edited region exceeds `threshold`."""
     return weights > threshold

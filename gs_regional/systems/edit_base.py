@@ -12,20 +12,19 @@ import numpy as np
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.localize import render_selection
 from gs_regional.edit.views import camera_path, order_by_azimuth
 from gs_regional.geometry.formats import ExportConfig, export_scene
 from gs_regional.geometry.gaussian_model import PARAM_NAMES
 from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.image import psnr, ssim
-from gs_regional.metrics.region import error_map, footprint, region_scores, unedited_scores
+from gs_regional.metrics.region import error_map, unedited_scores
+from gs_regional.metrics.truth import TruthScoring
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems import parallel
 from gs_regional.systems.base import GaussianSystem
-from gs_regional.utils.image import dilate
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +146,9 @@ class EditSystemBase(GaussianSystem):
         # (object.__setattr__) so it never enters checkpoints: setup() rebuilds it on resume.
         object.__setattr__(self, "source_model", copy.deepcopy(self.geometry).requires_grad_(False))
         self.renderer = make_renderer(self.cfg.renderer_type, self.cfg.renderer, self.trainer.strategy.root_device)
+        # Scoring against the known edit, when the scene has one (metrics only: it steers nothing).
+        self.truth = None if gt is None else TruthScoring(gt, self.renderer, self.scene.cameras, lambda: self.device,
+                                                          self.cfg.eval.footprint_threshold)
 
     def attach_ground_truth(self, truth: GroundTruth) -> None:
         """Hand the scene's known edit to every prior that renders one (the simulators)."""
@@ -197,6 +199,27 @@ class EditSystemBase(GaussianSystem):
                 "they are not available before fit starts"
             )
         return self._source_renders
+
+    def source_render(self, index: int) -> Dict[str, torch.Tensor]:
+        """The source scene's (H, W) "alpha" and "depth" at view `index`, rendered once per view
+        (initialization and every cycle's composite ask again; the source never changes)."""
+        cache = self.__dict__.setdefault("_source_render", {})
+        if index not in cache:
+            out = self.render_view(index, self.source_model)
+            cache[index] = {"alpha": out["alpha"], "depth": out["depth"]}
+        return cache[index]
+
+    def source_alpha(self, index: int) -> torch.Tensor:
+        """(H, W) rendered opacity of the source scene at view `index`."""
+        return self.source_render(index)["alpha"]
+
+    def full_edit(self, u: int) -> torch.Tensor:
+        """The editor's full edit of view `u` (one seed: each view is edited once)."""
+        cache = self.__dict__.setdefault("_full_edits", {})
+        if u not in cache:
+            cache[u] = self.guidance.edit(self.source_renders[u][None], self.source_renders[u][None], self.cfg.prompt,
+                                          t_start=None, seed=self.cfg.seed, cameras=[self.scene.cameras[u]])[0].to(self.device)
+        return cache[u]
 
     def render_view(self, index: int, model=None, **kw) -> Dict[str, torch.Tensor]:
         cam = self.scene.cameras[index].to(self.device)
@@ -307,26 +330,8 @@ class EditSystemBase(GaussianSystem):
         With a ground truth: where the true edited scene renders like the source, away from the
         true region. Otherwise subclasses may use their own 3D mask.
         """
-        gt = self.scene.ground_truth
-        if gt is None:
-            return None
-        src = self.source_renders[index]
-        truth = self.true_edited_render(index)
-        region = render_selection(gt.source.to(self.device), self.renderer, self.scene.cameras[index].to(self.device), gt.region.to(self.device))
-        changed = ((truth - src).abs().amax(-1) > 2.0 / 255) | (region > 0.01)
-        return ~dilate(changed, 2)
-
-    def true_footprint(self, index: int) -> torch.Tensor:
-        """(H, W) bool: the pixels the true edit is about at view `index`: where the true region
-        renders in the source scene or the edited scene's region (with what the edit adds)
-        renders in the true edited scene."""
-        gt = self.scene.ground_truth
-        cam = self.scene.cameras[index].to(self.device)
-        weight = torch.maximum(
-            render_selection(gt.source.to(self.device), self.renderer, cam, gt.region.to(self.device)),
-            render_selection(gt.edited.to(self.device), self.renderer, cam, gt.new_region.to(self.device)),
-        )
-        return footprint(weight, self.cfg.eval.footprint_threshold)
+        truth = getattr(self, "truth", None)
+        return None if truth is None else truth.unchanged(index, self.source_renders[index])
 
     def size_metrics(self) -> Dict[str, object]:
         """Gaussians added and pruned by this run (and by the true edit, if known), and the bytes
@@ -341,20 +346,12 @@ class EditSystemBase(GaussianSystem):
         kept = self.geometry.source_index[self.geometry.source_index >= 0].unique().numel()
         out: Dict[str, object] = {"gaussians_added": added, "gaussians_pruned": pruned,
                                   "source_deleted": self.n_source - int(kept)}
-        gt = self.scene.ground_truth
-        if gt is not None:
-            out["true_gaussians_added"] = len(gt.edited) - len(gt.source)
+        if self.truth is not None:
+            out["true_gaussians_added"] = self.truth.gaussians_added()
         path = self.save_dir / "edited.ply"
         out["ply_bytes"] = path.stat().st_size
         out["source_ply_bytes"] = ply_bytes_with_rows(path, self.n_source)
         return out
-
-    def true_edited_render(self, index: int) -> torch.Tensor:
-        cache = self.__dict__.setdefault("_truth_cache", {})
-        if index not in cache:
-            with torch.no_grad():
-                cache[index] = self.render_view(index, self.scene.ground_truth.edited.to(self.device))["rgb"]
-        return cache[index]
 
     def on_export(self) -> None:
         """`launch.py --export resume=<ckpt>`: write the scene of that checkpoint as a PLY and the
@@ -398,8 +395,8 @@ class EditSystemBase(GaussianSystem):
         views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]
         after = {i: self.render_view(i)["rgb"].clamp(0, 1) for i in views}
         rows = [[self.source_renders[i], after[i]] for i in views]
-        if scene.ground_truth is not None:
-            rows = [r + [self.true_edited_render(i)] for r, i in zip(rows, views)]
+        if self.truth is not None:
+            rows = [r + [self.truth.edited_render(i)] for r, i in zip(rows, views)]
         self.save_image_grid("before_after.png", rows)
 
         metrics: Dict[str, object] = {
@@ -420,18 +417,13 @@ class EditSystemBase(GaussianSystem):
             metrics["ssim_unedited"] = ssim(a, s, m)
             alpha = torch.stack([self.render_view(i, self.source_model)["alpha"] for i in views])
             metrics.update(unedited_scores(a, s, m, alpha, self.cfg.eval.opaque_alpha))
-        if scene.ground_truth is not None:
-            truth = torch.stack([self.true_edited_render(i) for i in views])
-            metrics["psnr_vs_true_edit"] = psnr(torch.stack([after[i] for i in views]), truth)
-            metrics["ssim_vs_true_edit"] = ssim(torch.stack([after[i] for i in views]), truth)
-            # What leaving the scene unedited would score, for scale.
-            metrics["psnr_source_vs_true_edit"] = psnr(torch.stack([self.source_renders[i] for i in views]), truth)
-            inside = torch.stack([self.true_footprint(i) for i in views])
-            metrics["footprint_fraction"] = float(inside.float().mean())
-            metrics.update(region_scores(torch.stack([after[i] for i in views]),
-                                         torch.stack([self.source_renders[i] for i in views]), truth, inside))
+        if self.truth is not None:
+            scores, inside = self.truth.scores(views, torch.stack([after[i] for i in views]),
+                                               torch.stack([self.source_renders[i] for i in views]))
+            metrics.update(scores)
             self.save_image_grid("errors_vs_truth.png", [
-                [after[i], t, error_map(after[i], t, m)] for i, t, m in zip(views, truth, inside)])
+                [after[i], self.truth.edited_render(i), error_map(after[i], self.truth.edited_render(i), m)]
+                for i, m in zip(views, inside)])
         if self.cfg.eval.clip_model:
             from gs_regional.metrics.clip import ClipMetrics
 

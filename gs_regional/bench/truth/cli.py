@@ -109,7 +109,7 @@ def main(argv=None) -> int:
     ap.add_argument("--localize-only", action="store_true",
                     help=f"end every run after localization ({LOCALIZE_ONLY}): the draw's mask IoUs in minutes")
     ap.add_argument("overrides", nargs="*", help="launch.py overrides (key=value) for every case, e.g. an ablation: "
-                    "system.localize_with_truth=true")
+                    "system.ablation.localize_with_truth=true")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error(f"--repeats {args.repeats}: need at least 1 run a case")

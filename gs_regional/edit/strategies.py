@@ -1,0 +1,313 @@
+"""§3.3's two kinds of edit as strategies (as `geometry/strategy.py` does for densification): a
+`Recolour` changes the colours of the localized Gaussians and adds none; an `Addition` adds
+Gaussians (from depth, by densification) and leaves the source's where they are. The system
+(`systems/regional_edit.py`) runs the schedule, localize -> initialize -> refinement cycles ->
+finish, and asks the strategy chosen after initialization (`choose_strategy`):
+
+* `start_timestep(cycle)`: where each cycle's partial edits start from;
+* `first_view_is_target(m)`: whether the first cycle trains on the first view's full edit;
+* `target(system, view, edited)`: the view's training target (the composite);
+* `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
+* `densify`: the densification strategy of refinement (None: no Gaussian added);
+* `after_edits(system)`: what follows each cycle's edits (the recolour's gate);
+* `finish(system)`: the last word after refinement;
+* `state_dict()` / `load_state_dict()` / `to(device)`: what it keeps in a checkpoint.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Dict, List, Optional
+
+import torch
+
+from gs_regional.config import ConfigError, need
+from gs_regional.edit.change import NOISE_SIGMAS, edit_blend
+from gs_regional.edit.composite import (
+    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured,
+)
+from gs_regional.edit.localize import SEEN_MIN_WEIGHT, render_selection
+from gs_regional.geometry import rows
+from gs_regional.geometry.strategy import DensifyStrategy
+from gs_regional.utils.sh import sh_to_rgb
+
+SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
+# A recolour trains colours at this multiple of their learning rate: 3DGS's rates are made for 30k
+# steps, and a recolour moves colours far in a few hundred (more costs the surroundings the spill
+# the gate lets through).
+RECOLOUR_LR_SCALE = 9.0
+# An addition moves the Gaussians it added at this multiple of the position learning rate: placed
+# from one view's depth and edit, a pixel or two off, they must move further than 3DGS's rate
+# carries them in a cycle's tens of steps.
+ADDED_POSITION_LR_SCALE = 3.0
+# The recolour gate's minimum is `min_edit_blend` times the blend this quantile of the seen
+# selected Gaussians reaches: a part a few pixels across is all edge, and even its own Gaussians
+# take under half of the edit's nearby colour.
+GATE_REFERENCE_QUANTILE = 0.99
+# A selected Gaussian recoloured by less than this whose source colour lies well outside those of
+# the Gaussians recoloured by more is a part of its own (eyes in a recoloured head) and keeps its
+# source colours.
+DISTINCT_PART_BLEND = 0.85
+
+_FIXED = "it is a fixed part of the method now (gs_regional/edit/strategies.py, gs_regional/edit/composite.py); remove the key"
+
+
+@dataclass
+class RefineConfig:
+    """`system.refine` (§3.3; docs/method.md "Refine")."""
+
+    MOVED_KEYS: ClassVar[Dict[str, str]] = {
+        "densify": "system.densify.enabled", "densify_every": "system.densify.every",
+        "grad_threshold": "system.densify.grad_threshold", "densify_budget": "system.densify.budget",
+        "constant_t": "system.ablation.constant_t", "optimize_all": "system.ablation.optimize_all",
+        "composite": "system.ablation.composite",
+    }
+    REMOVED_KEYS: ClassVar[Dict[str, str]] = {
+        **{key: "an addition's first cycle trains on the first view's neighbours (on its full edit when m = 0), a "
+                "recolour's on the full edit too; remove the key" for key in ("first_cycle_first_view", "reedit_first_view")},
+        "next_frontal": "each later cycle's frontal view is the edited view with the most unedited neighbours; remove the key",
+        **{key: "a recolour's colours start at the source's and train; remove the key"
+           for key in ("recolour_from_edits", "recolour_start_min_blend")},
+        **{key: _FIXED for key in ("composite_dilate", "composite_noise_sigmas", "composite_min_blend",
+                                   "composite_full_coverage", "gate_reference_quantile", "distinct_part_blend",
+                                   "recolour_lr_scale", "added_position_lr_scale")},
+    }
+    # The values a removed key had to have for an older checkpoint to resume as the method now runs.
+    RETIRED_VALUES: ClassVar[Dict[str, object]] = {
+        "first_cycle_first_view": "skip", "next_frontal": "frontier", "recolour_from_edits": False,
+        "composite_dilate": ADDITION_MARGIN_PX, "composite_noise_sigmas": NOISE_SIGMAS,
+        "composite_min_blend": MIN_OBJECT_BLEND, "composite_full_coverage": FULL_COVERAGE,
+        "gate_reference_quantile": GATE_REFERENCE_QUANTILE, "distinct_part_blend": DISTINCT_PART_BLEND,
+        "recolour_lr_scale": RECOLOUR_LR_SCALE, "added_position_lr_scale": ADDED_POSITION_LR_SCALE,
+    }
+    cycles: int = 3
+    t_schedule: List[int] = field(default_factory=lambda: [750, 500, 250])  # a recolour's start timestep per cycle
+    # An edit that may change the shape (an addition) starts from less noise: each partial denoise
+    # regenerates what the render shows, and from less noise it keeps the new geometry's sharpness
+    # instead of redrawing it in every view. null: `t_schedule`.
+    shape_t_schedule: Optional[List[int]] = field(default_factory=lambda: [450, 350, 250])
+    iterations_per_cycle: int = 500
+    m: int = 20  # nearest cameras edited around the cycle's frontal view
+    # The parameters of the selected source Gaussians that an addition leaves as they were: only the
+    # Gaussians the edit added train them (free, the region's Gaussians grow over their neighbours
+    # and follow every view's jittered target). [] frees them all (an edit that must move or
+    # remove source geometry).
+    source_fixed: List[str] = field(default_factory=lambda: ["means", "quats", "log_scales", "opacity_logits"])
+    # An addition leaves the selected source Gaussians their colours too when the first edited view
+    # recolours less than this fraction of the region beside what was added (metrics.json
+    # `init.recoloured_fraction`): free colours would only learn each view's jittered copy of the
+    # new object. 0: the source's colours always train.
+    min_recoloured_fraction: float = 0.3
+    # A recolour's selected Gaussian takes the edit only while the edited views recolour it: its
+    # rendering-weighted mean `edit_blend` over the views edited so far must reach this (relative to
+    # the best-recoloured ones, GATE_REFERENCE_QUANTILE), or it keeps its source colours: the
+    # selection's rim past the part would learn the editor's bleed. 0 lets every selected Gaussian train.
+    min_edit_blend: float = 0.5
+    # After the last cycle, Gaussians the edit added that contribute nothing are removed: total
+    # rendered weight over the training views below `prune_min_weight` (pixels) or opacity below
+    # `prune_min_opacity`.
+    prune_added: bool = True
+    prune_min_weight: float = 1.0
+    prune_min_opacity: float = 0.005
+    # Views each training step trains on, shared out over the processes of a run on several devices
+    # (systems/parallel.py). A number gives the same edit on any number of processes; null: one
+    # view per process (N devices train on N views a step in the time of one).
+    views_per_step: Optional[int] = 1
+
+    def check(self, where: str = "system.refine", num_train_timesteps: int = 1000, constant_t: Optional[int] = None) -> None:
+        need(self.cycles >= 1, f"{where}.cycles", "an integer >= 1", self.cycles)
+        need(self.iterations_per_cycle >= 1, f"{where}.iterations_per_cycle", "an integer >= 1", self.iterations_per_cycle)
+        need(self.m >= 0, f"{where}.m", "an integer >= 0 (views edited around each cycle's frontal view)", self.m)
+        need(0 <= self.min_recoloured_fraction <= 1, f"{where}.min_recoloured_fraction", "a number in [0, 1]",
+             self.min_recoloured_fraction)
+        need(0 <= self.min_edit_blend <= 1, f"{where}.min_edit_blend", "a number in [0, 1]", self.min_edit_blend)
+        need(self.views_per_step is None or self.views_per_step >= 1, f"{where}.views_per_step",
+             "an integer >= 1 or null (one per process)", self.views_per_step)
+        if constant_t is not None:  # system.ablation.constant_t replaces both schedules
+            return
+        for key in ("t_schedule", "shape_t_schedule"):
+            if getattr(self, key) is None:  # shape_t_schedule only: t_schedule then serves every edit
+                continue
+            t = list(getattr(self, key))
+            if len(t) < self.cycles:
+                raise ConfigError(f"{where}.{key} has {len(t)} timesteps for {self.cycles} cycles; "
+                                  f"give one start timestep per cycle")
+            n = num_train_timesteps
+            need(all(0 <= x < n for x in t), f"{where}.{key}", f"timesteps in [0, {n - 1}]", t)
+            need(all(a >= b for a, b in zip(t, t[1:])), f"{where}.{key}",
+                 "non-increasing (each cycle starts from less noise than the one before, e.g. [750, 500, 250])", t)
+
+
+class EditStrategy:
+    """What a kind of edit decides during refinement (see the module's docstring)."""
+
+    name = ""
+    shape_may_change = True
+
+    def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None) -> None:
+        self.cfg, self.ablation = refine, ablation
+        # Trains only the localized selection (and what the edit adds), on targets kept where it renders.
+        self.regional = ablation.localize and not ablation.optimize_all
+        self.densify = densify
+
+    def t_schedule(self) -> List[int]:
+        return list(self.cfg.t_schedule)
+
+    def start_timestep(self, cycle: int) -> int:
+        if self.ablation.constant_t is not None:
+            return int(self.ablation.constant_t)
+        return int(self.t_schedule()[cycle])
+
+    def first_view_is_target(self, neighbours: int) -> bool:
+        return True
+
+    def composite(self, system, index: int, edited: torch.Tensor, added: Optional[torch.Tensor]) -> torch.Tensor:
+        if not (self.ablation.composite and self.regional):
+            return edited
+        return composite_target(edited, system.source_renders[index], system.source_region(index), added,
+                                opaque=system.source_alpha(index) > 0.5)
+
+    def target(self, system, index: int, edited: torch.Tensor) -> torch.Tensor:
+        return self.composite(system, index, edited, None)
+
+    def set_trainable(self, geometry, param_groups: List[dict]) -> None:
+        # "editable" = mask | generation > 0, re-evaluated at every backward pass.
+        geometry.set_trainable_mask(None if self.ablation.optimize_all else "editable")
+
+    def after_edits(self, system) -> None:
+        pass
+
+    def finish(self, system) -> None:
+        pass
+
+    def state_dict(self) -> Dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        pass
+
+    def to(self, device) -> "EditStrategy":
+        return self
+
+
+class Recolour(EditStrategy):
+    """Depth initialization was trusted and found no change of shape: the localized Gaussians keep
+    their shape and opacity and train their colours only; none are added. The gate (`after_edits`)
+    keeps the selected Gaussians the edited views do not recolour at their source colours."""
+
+    name = "recolour"
+    shape_may_change = False
+
+    def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None) -> None:
+        super().__init__(refine, ablation, None)
+        self.blend_votes: Optional[torch.Tensor] = None  # (2, N) the gate's sums over the edited views
+
+    def set_trainable(self, geometry, param_groups: List[dict]) -> None:
+        if self.ablation.optimize_all:
+            geometry.set_trainable_mask(None)
+            return
+        geometry.set_trainable_mask("editable")
+        # Left free, the region's Gaussians grow and move into the unedited surroundings.
+        for group in param_groups:
+            group["lr"] *= RECOLOUR_LR_SCALE if group["name"] in SHAPE_FREE_PARAMS else 0.0
+
+    @torch.no_grad()
+    def after_edits(self, system) -> None:
+        """The gate: the selected Gaussians that the edited views so far do not recolour
+        (`refine.min_edit_blend`), or that are a part of their own (DISTINCT_PART_BLEND), go back to
+        their source colours and stop training; one whose views later recolour it trains again.
+        Two gathers per view of this cycle."""
+        if not self.regional or self.cfg.min_edit_blend <= 0:
+            return
+        g, s = system.geometry, system.state
+        weights = [system.renderer.pixel_weights(g, system.scene.cameras[j].to(system.device)) for j in s.cycle_views]
+        if self.blend_votes is None or self.blend_votes.shape[1] != g.num_gaussians:
+            self.blend_votes = torch.zeros(2, g.num_gaussians, device=system.device)
+        for k, (j, view) in enumerate(zip(s.cycle_views, weights)):
+            blend = edit_blend(s.cycle_targets[k], system.source_renders[j]).clamp(0, 1)
+            self.blend_votes[0] += view.gather(blend)
+            self.blend_votes[1] += view.gather(torch.ones_like(blend))
+        num, den = self.blend_votes
+        src = g.source_index
+        selected = (src >= 0) & s.source_selection.to(system.device)[src.clamp_min(0)]
+        seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
+        takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
+        colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
+        distinct = distinct_parts(colours, num / den.clamp_min(1e-12), seen, DISTINCT_PART_BLEND)
+        takes &= ~distinct
+        system.counts["recolour_distinct"] = int(distinct.sum())
+        rows.restore(g, system.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, system.optimizers())
+        g.mask.copy_(takes)
+        system.counts["recolour_declined"] = int((selected & ~takes).sum())
+        system.counts["recolour_taken"] = int((seen & takes).sum())
+
+    def finish(self, system) -> None:
+        if system.counts.get("recolour_taken") == 0:  # the gate let no Gaussian an edited view sees through
+            system.warn(f"refine: the edited views recolour none of the {system.counts.get('selected', 0):,} selected "
+                        f"Gaussians by system.refine.min_edit_blend={self.cfg.min_edit_blend} of the edit's colour, "
+                        "so each kept its source colours and the scene comes out unchanged; a lower min_edit_blend "
+                        "lets the edit through")
+
+    def state_dict(self) -> Dict[str, Any]:
+        return {"blend_votes": None if self.blend_votes is None else self.blend_votes.cpu()}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        self.blend_votes = state.get("blend_votes")
+
+    def to(self, device) -> "Recolour":
+        if self.blend_votes is not None:
+            self.blend_votes = self.blend_votes.to(device)
+        return self
+
+
+class Addition(EditStrategy):
+    """An edit that may change the shape (depth initialization added Gaussians, was rejected or is
+    off): the Gaussians it adds draw the new geometry; the source's keep `refine.source_fixed`, and
+    their colours too when the first edit recolours next to nothing beside what it added."""
+
+    name = "addition"
+
+    def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None,
+                 recoloured_fraction: Optional[float] = None) -> None:
+        super().__init__(refine, ablation, densify)
+        # The edit adds and recolours nothing: the source keeps its colours.
+        self.adds_only = recoloured_fraction is not None and recoloured_fraction < refine.min_recoloured_fraction
+
+    def t_schedule(self) -> List[int]:
+        return list(self.cfg.t_schedule if self.cfg.shape_t_schedule is None else self.cfg.shape_t_schedule)
+
+    def first_view_is_target(self, neighbours: int) -> bool:
+        # A full edit from pure noise places the object the farthest from where the other views put
+        # it; as a target it pulls the object towards its own offset. Its neighbours' partial edits
+        # are the first cycle's targets (the view counts as edited), unless it has none (m = 0).
+        return neighbours == 0
+
+    def target(self, system, index: int, edited: torch.Tensor) -> torch.Tensor:
+        added = None
+        if self.ablation.composite and self.regional:
+            cam = system.scene.cameras[index].to(system.device)
+            added = render_selection(system.geometry, system.renderer, cam, system.geometry.generation > 0)
+        return self.composite(system, index, edited, added)
+
+    def set_trainable(self, geometry, param_groups: List[dict]) -> None:
+        if self.ablation.optimize_all:
+            geometry.set_trainable_mask(None)
+            return
+        geometry.set_trainable_mask("editable")
+        fixed = [*self.cfg.source_fixed, *(SHAPE_FREE_PARAMS if self.adds_only else ())]
+        if fixed:
+            geometry.set_added_only(fixed)
+        if "means" in fixed:  # only the added rows move, so only they get the faster rate
+            for group in param_groups:
+                if group["name"] == "means":
+                    group["lr"] *= ADDED_POSITION_LR_SCALE
+
+
+def choose_strategy(init_report: Optional[dict], initialized: bool, refine: RefineConfig, ablation: Any,
+                    densify: DensifyStrategy) -> EditStrategy:
+    """A `Recolour` when depth initialization ran (`initialized`), was trusted and found no change
+    of shape; an `Addition` otherwise (`init_report`: initialization's report, None when it did not
+    run)."""
+    report = init_report
+    if initialized and report is not None and "rejected" not in report and report["added"] == 0:
+        return Recolour(refine, ablation)
+    return Addition(refine, ablation, densify, (report or {}).get("recoloured_fraction"))
