@@ -1,7 +1,7 @@
-"""Test session set-up: never touch the network; locate the shared data."""
+"""Test session set-up: never touch the network; the shared data and the small demo's run as fixtures;
+the order in which `make test` hands out the test files."""
 import os
 import socket
-from pathlib import Path
 
 import pytest
 
@@ -18,10 +18,7 @@ _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _WORKERS > 1:
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _WORKERS)))
 
-from trial_helpers import ROOT, launch  # noqa: E402 (after the environment above)
-
-# ../shared/data beside the checkout; GS_REGIONAL_DATA points elsewhere (e.g. from a git worktree).
-SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or ROOT.parent / "shared" / "data")
+from trial_helpers import launch, shared_path  # noqa: E402 (after the environment above)
 
 
 class NetworkAccessError(RuntimeError):
@@ -41,14 +38,6 @@ def _guarded_connect(self, address):
 socket.socket.connect = _guarded_connect
 
 
-def shared_path(*parts: str) -> Path:
-    """A path under ../shared/data, or skip the test with a clear reason."""
-    p = SHARED_DATA.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the checkout, or set GS_REGIONAL_DATA)")
-    return p
-
-
 @pytest.fixture
 def shared():
     return shared_path
@@ -59,3 +48,25 @@ def small_demo_run(tmp_path_factory):
     """One run of the small demo (tests/data/small_demo.yaml), shared by the tests that read its
     outputs or resume and compare against it: its trial dir."""
     return launch(tmp_path_factory.mktemp("small_demo"), "small-demo")
+
+
+# `make test` hands whole test files to its processes (pytest -n auto --dist loadfile), one at a
+# time as a process runs out of work. xdist's default order (the files with the most tests first)
+# leaves a file of one long test for the end, when the other process has nothing left to run: the
+# longest files go first instead, and the many short ones even out the processes' ends.
+LONGEST_FILES = (
+    "test_regional_edit.py", "test_reliability.py", "test_bench_pipeline.py", "test_truth_suite.py",
+    "test_composite.py", "test_parallel.py", "test_workflow_face.py", "test_float_stability.py",
+    "test_launch_console.py", "test_reconstruct.py", "test_formats.py", "test_gpu_check.py",
+    "test_compactness.py", "test_launch.py", "test_initialize_shape.py", "test_device_and_batching.py",
+)
+
+
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist: keep the order below
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(session, config, items):
+    first = {name: rank for rank, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: the rest keep their order

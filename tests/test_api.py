@@ -3,7 +3,7 @@ import torch
 from plyfile import PlyData
 
 import gs_regional as gr
-from conftest import shared_path
+from trial_helpers import shared_path
 
 
 def test_load_render_save_a_real_splat_with_real_cameras(tmp_path):

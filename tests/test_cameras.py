@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from gs_regional.api import load_cameras
 from gs_regional.data.cameras import Camera
 from gs_regional.data.colmap import ColmapError

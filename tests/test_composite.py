@@ -123,7 +123,7 @@ def test_a_region_that_fills_the_object_keeps_its_edit():
     on. Fitted on the empty background's clipped noise, the gain crushed the target to black (5 dB
     against the truth in the view from above, where the editor's own output scores 21 dB); on a
     sliver of silhouette it measured the blur as noise and kept nothing of the edit."""
-    from conftest import shared_path
+    from trial_helpers import shared_path
     from gs_regional.sim.splat_truth import SplatTruthDataModule
 
     dm = SplatTruthDataModule({"ply": str(shared_path("donut") / "donut.ply"), "edit": "recolor", "select": "top",

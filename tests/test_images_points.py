@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from gs_regional.api import load_cameras
 from gs_regional.data.cameras import Camera
 from gs_regional.data.images import ImageLoadError, load_image, read_image, undistort_image

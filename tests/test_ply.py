@@ -7,7 +7,7 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from gs_regional.geometry import ply as plymod
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.geometry.ply import PlyError, read_ply, standard_property_names, write_ply

@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from trial_helpers import ROOT, launch, metrics_of, ply_arrays
 from gs_regional.launch import main
 

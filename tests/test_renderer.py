@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from trial_helpers import ROOT, metrics_of, trial_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from plyfile import PlyData
 
-from conftest import shared_path
+from trial_helpers import shared_path
 from tiny_models_fixture import tiny_models  # noqa: F401
 from trial_helpers import ROOT
 from gs_regional.launch import main

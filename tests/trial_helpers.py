@@ -18,6 +18,20 @@ SMALL_DEMO = Path(__file__).parent / "data" / "small_demo.yaml"
 _SCENE_SECTIONS = ("use_timestamp", "data.", "system.eval.", "checkpoint.", "trainer.")
 
 
+# ../shared/data beside the checkout; GS_REGIONAL_DATA points elsewhere (e.g. from a git worktree).
+SHARED_DATA = Path(os.environ.get("GS_REGIONAL_DATA") or ROOT.parent / "shared" / "data")
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test with a clear reason."""
+    import pytest
+
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the checkout, or set GS_REGIONAL_DATA)")
+    return p
+
+
 def small_demo(scene_only=False):
     """tests/data/small_demo.yaml as key=value overrides (of configs/demo.yaml); `scene_only`: its
     scene, evaluation and trainer keys alone, for another system on the synthetic scene."""
