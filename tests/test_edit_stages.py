@@ -136,7 +136,7 @@ def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_
     """A part (depth 2) in front of a wall (depth 5 + a ramp); the edit adds an object at depth 1.8
     that reaches past the part's silhouette over the wall. As with a small object seen by a real
     estimator, its disparity over the wall is mostly lost (30 % of the change kept): the transferred
-    depth there is about 3.4, far behind the part, where it used to be dropped as far from the
+    depth there is about 3.4, far behind the part, where it would be dropped as far from the
     region, and with it half the object. It takes the depth of the geometry beside it instead (the
     part at 2.0, the object's accepted pixels at 1.8), while over the part the transferred 1.8 stands."""
     h = w = 32
@@ -191,9 +191,8 @@ class _Cover(PixelWeights):
 def test_view_agreement_of_a_region_under_a_pixel():
     """A selection that covers no pixel by half (a region a pixel or two across at the view's
     resolution) is compared by the pixels it covers most: a 2D mask around it agrees, one
-    elsewhere does not. Before, its IoU was 0 whatever the mask, and such a run stopped with
-    "views disagree" (truth suite 36393 c09, a 14-Gaussian face patch; 874425 c10, 37 Gaussians,
-    now gains +5.3 dB)."""
+    elsewhere does not. Counted by the pixels above half, its IoU would be 0 whatever the mask,
+    and a run on a patch of a few dozen Gaussians would stop with "views disagree"."""
     cover = torch.zeros(8, 8)
     cover[3:5, 3:5] = 0.3  # no pixel above half
     around, elsewhere = torch.zeros(8, 8), torch.zeros(8, 8)
@@ -212,8 +211,8 @@ def test_view_agreement_of_a_region_under_a_pixel():
 def test_view_agreement_tolerates_a_mask_a_pixel_off_a_part_a_few_pixels_across():
     """The views-disagree stop (localization.agreement_tolerance_px = 1): relevance maps reach a
     pixel or two past the region, so on a part 2 px across the editor's mask a pixel off has a
-    plain IoU under the stop's 0.3 (the face patches of 14-53 Gaussians that stopped although
-    their selection was right, IoU 0.80 in 511745 c12). Counted within 1 px, it agrees fully; a
+    plain IoU under the stop's 0.3 (a face patch of a few dozen Gaussians would stop although its
+    selection is right). Counted within 1 px, it agrees fully; a
     mask elsewhere still does not, and a blob round the part counts by its share near the part."""
     cover = torch.zeros(8, 8)
     cover[3:5, 3:5] = 0.9

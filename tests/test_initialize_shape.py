@@ -138,9 +138,9 @@ def tiny_run(tmp_path, name, *overrides):
 def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     """A trusted calibration that finds no change of shape: refinement recolours the Gaussians
     there are, densifies none and leaves their shape and opacity as they were (the true recolour
-    adds none; it used to densify hundreds, and the region's Gaussians grew over its surroundings)."""
-    # 24 cameras of 64 px: the head's silhouette there used to pass the depth-change test (noise in
-    # depth over the background, a second calibration extrapolated over the region).
+    adds none; densified, the region's Gaussians grow over its surroundings)."""
+    # 24 cameras of 64 px: the head's silhouette there is where noise in depth over the background
+    # (or a second calibration extrapolated over the region) could pass the depth-change test.
     m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
     assert "rejected" not in m["init"] and m["count_added_init"] == 0
     assert len(m["init"]["views_checked"]) == InitConfig().views  # no view's depth shows a change of shape
@@ -181,9 +181,8 @@ def test_an_addition_is_found_in_a_second_view_when_the_first_edit_misses_it(tmp
 def test_an_addition_whose_region_fills_the_view_is_calibrated_on_what_the_edit_leaves(tmp_path):
     """A big ball put on a part that fills the view (the donut's icing seen from above): no pixel
     outside the region to calibrate the monocular depth on. The depth is calibrated on the opaque
-    pixels the edit leaves unchanged instead, and the ball's Gaussians land on the true ball (before:
-    rejected, nothing added, and densification alone barely drew it: +0.4 dB on the truth suite's
-    draw 964819, case c18)."""
+    pixels the edit leaves unchanged instead, and the ball's Gaussians land on the true ball
+    (rejected, nothing would be added, and densification alone barely draws such a ball)."""
     from gs_regional.sim.scene import make_scene
     from gs_regional.sim.splat_truth import SplatTruthDataModule
 

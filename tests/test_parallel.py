@@ -154,7 +154,7 @@ def runs(tmp_path_factory, small_demo_run):
 
 
 def assert_same_edit(m, ref):
-    """The issue's bar: mask IoU within 0.02, footprint PSNR within 0.3 dB, Gaussians within 1 %,
+    """The same edit: mask IoU within 0.02, footprint PSNR within 0.3 dB, Gaussians within 1 %,
     and the same work (counters summed over the processes)."""
     assert abs(m["mask_iou"] - ref["mask_iou"]) <= 0.02
     assert abs(m["psnr_region_vs_true_edit"] - ref["psnr_region_vs_true_edit"]) <= 0.3

@@ -374,9 +374,9 @@ def densifying(tmp_path_factory):
 # (a densification at step 6 just before it), and killed mid-cycle (checkpoint at step 6, after it).
 @pytest.mark.parametrize("end,step", [("stop", 4), ("stop", 6), ("kill", 7)])
 def test_a_densifying_run_resumed_in_refinement_ends_as_the_whole_run(end, step, densifying, tmp_path, monkeypatch):
-    """A stopped run once pruned the useless added Gaussians at its early end and checkpointed that
-    pruned scene: resumed, it densified from it and skipped the final prune (9758 Gaussians, 183
-    pruned straight through; 9924 and 32 resumed from step 4, at main 91a57ed)."""
+    """A run stopped early must not prune the useless added Gaussians at its early end and
+    checkpoint that pruned scene: resumed, it would densify from it and skip the final prune,
+    ending with other Gaussians than the run straight through."""
     from gs_regional.systems import edit_base
 
     every = ["checkpoint.every_n_train_steps=2"] if end == "kill" else []
@@ -524,10 +524,9 @@ def test_a_normal_run_edits_what_it_localized_and_does_not_warn(small_demo_run):
 
 def test_a_first_view_whose_relevance_map_is_noise_is_left_for_the_view_that_shows_the_region(tmp_path, monkeypatch, small_demo_run):
     """In a view that hides the region the relevance map, normalised to its peak, is noise, and its
-    blobs (in the empty background) can be larger than every real mask: that view was edited first,
-    its full edit showed next to nothing (3 pixels of a patch on the donut, in the selection, so no
-    check fired) and the whole edit started from it (truth-suite draw 769177 c24: +1.5 dB instead of
-    +9.3). Known answer: one view other than the one the run without blobs edits first gets a
+    blobs (in the empty background) can be larger than every real mask: edited first, such a view's
+    full edit shows next to nothing (a few pixels in the selection, so no check fires) and the whole
+    edit would start from it, losing most of its gain. Known answer: one view other than the one the run without blobs edits first gets a
     relevance map that is a blob larger than any real mask, and its full edit changes one pixel
     of the region; the run moves to the view where the 2D masks and the selection overlap most."""
     from gs_regional.sim.editor import SimulatedEditor
@@ -599,8 +598,8 @@ def test_a_first_view_that_shows_the_region_keeps_the_edit_when_its_change_is_dr
 
 def test_a_big_object_sticking_out_of_its_part_is_not_taken_for_an_edit_elsewhere(tmp_path, monkeypatch):
     """A big object added on a small part (a big ball on the head) sticks out over what lies
-    behind: half or more of its change lies beside the selection in every view, and the coverage
-    check stopped such runs (466697 c18, c19: coverage 0.41 and 0.48). It covers the part, though,
+    behind: half or more of its change lies beside the selection in every view (coverage under a
+    half), which the coverage check alone would stop. It covers the part, though,
     and an edit placed on something else changes next to none of the selection. Known answer: the
     first full edit paints the head and, below it over the body, one and a half times the head's
     area: its coverage is under a half, it changes all of the head, and the run goes on from that one view."""
