@@ -143,13 +143,12 @@ def test_quick_run_writes_records_and_chart(tmp_path, capsys):
 
 
 def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path, monkeypatch):
-    """Known cause (draw 536750 c18, a big ball on the figure's head: 43.8 dB outside its true
-    footprint): the ball is placed from the first edited view, which the editor draws a pixel or
-    two off, and at 3DGS's position rate (made for 30k steps) refinement's 180 steps moved it too
-    little to follow the other views: its centre stayed 0.07 (a third of its radius) to the side
-    of the true one, a crescent outside the true footprint in every held-out view. At
-    ADDED_POSITION_LR_SCALE=3 (gs_regional/edit/strategies.py) it moves: more gain and more than 2 dB more
-    outside the footprint than at 1, and no source Gaussian is deleted either way."""
+    """Draw 536750's c18 is a big ball on the figure's head, placed from the first edited view, which
+    the editor draws a pixel or two off. At 3DGS's position rate (made for 30k steps) refinement's
+    180 steps move it too little to follow the other views: its centre stays a third of its radius
+    to the side of the true one, a crescent outside the true footprint in every held-out view. At
+    ADDED_POSITION_LR_SCALE = 3 (gs_regional/edit/strategies.py) it moves: more gain and more than
+    2 dB more outside the footprint than at 1, and no source Gaussian is deleted either way."""
     from gs_regional.edit import strategies
 
     runs = {}
