@@ -34,7 +34,7 @@ class LocalizeConfig:
     REMOVED_KEYS: ClassVar[Dict[str, str]] = {
         "reweight_iters": "the lift re-weights its views as the method does; system.ablation.plain_vote=true gives "
                           "the paper's vote (no re-weighting, no neighbour pooling); remove the key",
-        **{key: "it is a fixed part of the method now (gs_regional/edit/localize.py); remove the key"
+        **{key: f"it is the constant {key.upper()} of gs_regional/edit/localize.py now; remove the key"
            for key in ("agreement_power", "edge_colour_ratio", "agreement_tolerance_px")},
     }
     # The values a removed key had to have for an older checkpoint to resume as the method now runs.
@@ -257,23 +257,36 @@ def splat_selection(view: PixelWeights, selected: torch.Tensor) -> torch.Tensor:
     return view.splat(selected.float()[:, None])[..., 0].clamp(0, 1)
 
 
+@dataclass
+class Localization:
+    """What `localize_selection` found."""
+
+    selected: torch.Tensor  # (N,) bool, after point expansion
+    lifted: dict  # `localize_gaussians`' result (its pixel weights "views", "seen", ...)
+    cameras: list
+    lift: dict  # the keywords it was lifted with
+    metrics: dict  # {"view_weights", "view_agreement"}
+
+    def relift(self, model, renderer, masks: Sequence[torch.Tensor]) -> torch.Tensor:
+        """(N,) bool: the same lift of other 2D `masks` (no new renders)."""
+        return localize_gaussians(model, renderer, self.cameras, masks, reuse=self.lifted, **self.lift)["selected"]
+
+
 @torch.no_grad()
 def localize_selection(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], images: torch.Tensor,
                        cfg: LocalizeConfig, extent: float, plain_vote: bool = False,
-                       agree: Callable[[torch.Tensor], torch.Tensor] = lambda x: x) -> tuple:
+                       agree: Callable[[torch.Tensor], torch.Tensor] = lambda x: x) -> Localization:
     """§3.1 steps 4-5 from the views' 2D `masks`: the lift (`localize_gaussians` with `cfg`'s
-    settings), point expansion, and how well the views agree with the selection. `agree`: the
-    selection every process of a run on several devices edits (rank 0's). Returns (selected (N,)
-    bool, the lift's result with its keywords ("lift") and "cameras", metrics {"view_weights",
-    "view_agreement": the mean IoU of the 2D masks with the selection in the better half of the
-    views})."""
+    settings), point expansion, and how well the views agree with the selection (`view_agreement`:
+    the mean IoU of the 2D masks with the selection in the better half of the views). `agree`: the
+    selection every process of a run on several devices edits (rank 0's)."""
     lift = dict(cfg.lift(plain_vote), images=images)
-    lifted = dict(localize_gaussians(model, renderer, cameras, masks, **lift), lift=lift, cameras=list(cameras))
+    lifted = localize_gaussians(model, renderer, cameras, masks, **lift)
     selected = agree(expand_selection(model.means.detach(), lifted["selected"], cfg.expand_radius * extent))
     iou = mask_agreement(lifted["views"], masks, selected, faint=True, tolerance_px=AGREEMENT_TOLERANCE_PX)
     metrics = {"view_weights": [round(float(w), 3) for w in lifted["view_weights"]],
                "view_agreement": float(iou.sort(descending=True).values[: (len(iou) + 1) // 2].mean())}
-    return selected, lifted, metrics
+    return Localization(selected, lifted, list(cameras), lift, metrics)
 
 
 def views_disagree(agreement: float, min_view_agreement: float) -> str:

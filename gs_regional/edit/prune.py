@@ -1,11 +1,15 @@
 """After refinement: the Gaussians an edit added that contribute nothing."""
 from __future__ import annotations
 
+import logging
 from typing import Sequence
 
 import torch
 
 from gs_regional.data.cameras import Camera
+from gs_regional.geometry import rows
+
+log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
@@ -28,3 +32,17 @@ def useless_added(model, renderer, cameras: Sequence[Camera], min_weight: float,
         return added
     weak = model.opacities < min_opacity
     return added & (weak | (rendered_weight(model, renderer, cameras) < min_weight))
+
+
+@torch.no_grad()
+def prune_useless_added(model, renderer, cameras: Sequence[Camera], min_weight: float, min_opacity: float, optimizer,
+                        agree=lambda rows_: rows_) -> int:
+    """Remove the Gaussians an edit added that contribute nothing to `cameras` (`useless_added`),
+    sparing the last descendant of every source row; `agree`: the rows every process of a run on
+    several devices prunes (rank 0's). Returns how many."""
+    useless = agree(rows.spare_last_descendants(model, useless_added(model, renderer, cameras, min_weight, min_opacity)))
+    n = int(useless.sum())
+    if n:
+        rows.keep(model, ~useless, optimizer)
+    log.info("refine: pruned %d of the %d added Gaussians that contribute nothing", n, int((model.generation > 0).sum()) + n)
+    return n

@@ -48,7 +48,14 @@ GATE_REFERENCE_QUANTILE = 0.99
 # source colours.
 DISTINCT_PART_BLEND = 0.85
 
-_FIXED = "it is a fixed part of the method now (gs_regional/edit/strategies.py, gs_regional/edit/composite.py); remove the key"
+# Keys that became named constants: {key: (constant, module)}.
+_CONSTANTS = {
+    "composite_dilate": ("ADDITION_MARGIN_PX", "composite"), "composite_noise_sigmas": ("NOISE_SIGMAS", "change"),
+    "composite_min_blend": ("MIN_OBJECT_BLEND", "composite"), "composite_full_coverage": ("FULL_COVERAGE", "composite"),
+    "gate_reference_quantile": ("GATE_REFERENCE_QUANTILE", "strategies"),
+    "distinct_part_blend": ("DISTINCT_PART_BLEND", "strategies"), "recolour_lr_scale": ("RECOLOUR_LR_SCALE", "strategies"),
+    "added_position_lr_scale": ("ADDED_POSITION_LR_SCALE", "strategies"),
+}
 
 
 @dataclass
@@ -67,9 +74,8 @@ class RefineConfig:
         "next_frontal": "each later cycle's frontal view is the edited view with the most unedited neighbours; remove the key",
         **{key: "a recolour's colours start at the source's and train; remove the key"
            for key in ("recolour_from_edits", "recolour_start_min_blend")},
-        **{key: _FIXED for key in ("composite_dilate", "composite_noise_sigmas", "composite_min_blend",
-                                   "composite_full_coverage", "gate_reference_quantile", "distinct_part_blend",
-                                   "recolour_lr_scale", "added_position_lr_scale")},
+        **{key: f"it is the constant {name} of gs_regional/edit/{module}.py now; remove the key"
+           for key, (name, module) in _CONSTANTS.items()},
     }
     # The values a removed key had to have for an older checkpoint to resume as the method now runs.
     RETIRED_VALUES: ClassVar[Dict[str, object]] = {

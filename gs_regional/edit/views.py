@@ -91,3 +91,15 @@ def order_by_azimuth(cameras: Sequence[Camera], indices: Sequence[int]) -> List[
     start = (int(torch.argmax(gaps)) + 1) % len(order)
     order = order[start:] + order[:start]
     return [list(indices)[j] for j in order]
+
+
+def cycle_views(cameras: Sequence[Camera], cycle: int, first: int, edited: Sequence[int], m: int, among: Sequence[int],
+                seed: int) -> tuple:
+    """(frontal view, its `m` nearest cameras of `among`, nearest first) of refinement cycle
+    `cycle`: cycle 0 starts at the `first` edited view, later cycles at the `frontier_view` of the
+    `edited` views (ties drawn with `seed`), so the edit spreads outwards."""
+    if cycle == 0:
+        frontal = first
+    else:
+        frontal = frontier_view(cameras, edited, m, among, torch.Generator().manual_seed(seed * 7919 + cycle))
+    return frontal, nearest_cameras(cameras, frontal, m, among)

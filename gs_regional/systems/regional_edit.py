@@ -16,12 +16,12 @@ from gs_regional.edit.change import recoloured_fraction
 from gs_regional.edit.first_view import FirstView, check_edit, choose_first_view, stop_message
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
 from gs_regional.edit.localize import (
-    LocalizeConfig, localize_gaussians, localize_selection, render_selection, splat_selection, views_disagree,
+    LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
 )
-from gs_regional.edit.prune import useless_added
+from gs_regional.edit.prune import prune_useless_added
 from gs_regional.edit.state import EditState
 from gs_regional.edit.strategies import EditStrategy, RefineConfig, choose_strategy
-from gs_regional.edit.views import frontier_view, nearest_cameras, spread_subset
+from gs_regional.edit.views import cycle_views, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.utils.image import dilate
@@ -127,7 +127,7 @@ class RegionalEdit(EditSystemBase):
         cfg, lc, scene, s, g = self.cfg, self.cfg.localization, self.scene, self.state, self.geometry
         views = spread_subset(scene.train_indices, lc.max_views)
         s.localize_views, s.localize_metrics = views, {}
-        lifted, masks = None, None
+        loc, masks = None, None
         if not cfg.ablation.localize or lc.gamma <= 0:
             selected = torch.ones(g.num_gaussians, dtype=torch.bool, device=self.device)
         else:
@@ -138,9 +138,9 @@ class RegionalEdit(EditSystemBase):
                 images[ks], cfg.prompt, threshold=lc.gamma, blur_sigma=lc.blur_sigma, timestep=lc.timestep,
                 samples=lc.samples, seed=cfg.seed, cameras=[cams[k] for k in ks],
             ), images.shape[1:3])
-            selected, lifted, s.localize_metrics = localize_selection(
-                g, self.renderer, [c.to(self.device) for c in cams], masks, images, lc, scene.extent,
-                cfg.ablation.plain_vote, agree=lambda sel: parallel.from_rank_zero(self, sel))  # one selection
+            loc = localize_selection(g, self.renderer, [c.to(self.device) for c in cams], masks, images, lc, scene.extent,
+                                     cfg.ablation.plain_vote, agree=lambda sel: parallel.from_rank_zero(self, sel))
+            selected, s.localize_metrics = loc.selected, dict(loc.metrics)  # every process edits one selection
             for k, i in enumerate(views):
                 self.save_image(f"localize/mask2d_{i:03d}.png", overlay_mask(self.source_renders[i], masks[k]))
         if cfg.ablation.localize_with_truth:  # check_scene made sure there is a truth
@@ -153,14 +153,13 @@ class RegionalEdit(EditSystemBase):
         s.masks2d = masks
         self.add_time("localize", time.perf_counter() - t0)
         if self.truth is not None:
-            s.localize_metrics.update(self.truth.localization(g, s.source_selection, self.n_source, *(() if lifted is None else (
-                lifted["seen"], lifted["views"], lambda exact: localize_gaussians(
-                    g, self.renderer, lifted["cameras"], exact, reuse=lifted, **lifted["lift"])["selected"]))))
+            s.localize_metrics.update(self.truth.localization(g, s.source_selection, self.n_source, *(() if loc is None else (
+                loc.lifted["seen"], loc.lifted["views"], lambda exact: loc.relift(g, self.renderer, exact)))))
         # The selection rendered back into each view, from the lift's kept pixel weights when there
         # was a lift (no new renders); initialization reuses these masks.
         for k, i in enumerate(views):
-            if lifted is not None:
-                m3 = splat_selection(lifted["views"][k], selected)
+            if loc is not None:
+                m3 = splat_selection(loc.lifted["views"][k], selected)
             else:
                 m3 = render_selection(g, self.renderer, scene.cameras[i].to(self.device), selected)
             s.localized_masks[i] = m3 > 0.5
@@ -296,12 +295,7 @@ class RegionalEdit(EditSystemBase):
         r, cfg, scene, s = self.cfg.refine, self.cfg, self.scene, self.state
         self.set_stage(f"refine {cycle + 1}/{r.cycles}: editing views")
         t0 = time.perf_counter()
-        if cycle == 0:
-            frontal = s.v_first
-        else:
-            gen = torch.Generator().manual_seed(cfg.seed * 7919 + cycle)
-            frontal = frontier_view(scene.cameras, s.edited_views, r.m, scene.train_indices, gen)
-        near = nearest_cameras(scene.cameras, frontal, r.m, scene.train_indices)
+        frontal, near = cycle_views(scene.cameras, cycle, s.v_first, s.edited_views, r.m, scene.train_indices, cfg.seed)
         views = [frontal] + near  # in order of distance
         full_edit_is_target = cycle == 0 and self.strategy.first_view_is_target(len(near))
         if cycle == 0 and not full_edit_is_target:
@@ -415,28 +409,17 @@ class RegionalEdit(EditSystemBase):
         self.write_outputs({"stopped": reason, **self.state.localize_metrics})
         return None
 
-    @torch.no_grad()
-    def prune_useless_added(self) -> int:
-        """Remove the added Gaussians that contribute nothing to the training views (refine.prune_*)."""
-        r, g = self.cfg.refine, self.geometry
-        if not r.prune_added:
-            return 0
-        cams = [self.scene.cameras[i].to(self.device) for i in self.scene.train_indices]
-        useless = rows.spare_last_descendants(g, useless_added(g, self.renderer, cams, r.prune_min_weight, r.prune_min_opacity))
-        useless = parallel.from_rank_zero(self, useless)  # every process prunes the same rows
-        if int(useless.sum()):
-            rows.keep(g, ~useless, self.optimizers().optimizer)
-        log.info("refine: pruned %d of the %d added Gaussians that contribute nothing", int(useless.sum()),
-                 int((g.generation > 0).sum()) + int(useless.sum()))
-        return int(useless.sum())
-
     def finish_refinement(self) -> None:
         """The end of refinement, inside its last step: prune the useless added Gaussians. Part of
         the step, not of on_train_end: a run stopped earlier (trainer.max_steps) then checkpoints
         the state refinement goes on from, so resuming it with more steps gives the whole run's
         scene."""
         t0 = time.perf_counter()
-        n = self.prune_useless_added()
+        r = self.cfg.refine
+        n = 0 if not r.prune_added else prune_useless_added(
+            self.geometry, self.renderer, [self.scene.cameras[i].to(self.device) for i in self.scene.train_indices],
+            r.prune_min_weight, r.prune_min_opacity, self.optimizers().optimizer,
+            agree=lambda rows_: parallel.from_rank_zero(self, rows_))  # every process prunes the same rows
         self.add_time("prune", time.perf_counter() - t0)
         self.counts["pruned_added"] = n
         self.counts["pruned"] = self.counts.get("pruned", 0) + n
