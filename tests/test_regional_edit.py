@@ -194,11 +194,11 @@ def test_metrics_json_has_the_region_aware_scores(runs, tmp_path):
     assert metrics_of(get_run(runs, "in2n", "configs/in2n.yaml"))["gaussians_added"] == 0
 
 
-# The demo at its size with short refinement (10 steps a cycle), for the tests that compare it with
+# The demo at its size with short refinement (5 steps a cycle), for the tests that compare it with
 # one setting changed: they stay at the demo's 40 views of 96², where depth initialization sees the
 # moustache's change of shape (at 24 views its gain falls under the 0.5 dB asserted).
 SHORT = ["trainer.enable_progress_bar=false", "system.eval.turntable_frames=2", "system.eval.max_test_views=5",
-         "system.refine.iterations_per_cycle=10"]
+         "system.refine.iterations_per_cycle=5"]
 
 
 def get_short_run(runs, name, *overrides):

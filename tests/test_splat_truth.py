@@ -12,12 +12,11 @@ import pytest
 import torch
 
 from trial_helpers import shared_path
-from trial_helpers import ROOT, metrics_of, trial_of
+from trial_helpers import launch, metrics_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json
 from gs_regional.edit.localize import render_selection
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.launch import main
 from gs_regional.registry import find
 from gs_regional.utils.sh import sh_to_rgb
 from gs_regional.sim.scene import make_scene
@@ -226,18 +225,16 @@ def test_donut_regional_edit_end_to_end(tmp_path):
     truth and metrics.json scores it (the budget is far too small to judge quality)."""
     ply = shared_path("donut", "donut.ply")
     t0 = time.perf_counter()
-    argv = ["--config", str(ROOT / "configs/donut_add.yaml"), "--train", f"exp_root_dir={tmp_path}", "name=donut",
-            f"data.ply={ply}", "data.n_cameras=12", "data.width=48", "data.height=48",
-            "system.localization.max_views=6",
-            "system.refine.cycles=2", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
-            "system.densify.every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2",
-            # prune the region's source rows too (an edit prunes only what it added by default), so
-            # that densify and prune move and resize the rows before the check below
-            "system.densify.prune_only_added=false",
-            "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false"]
-    assert main(argv) == 0
+    trial = launch(tmp_path, "donut", f"data.ply={ply}", "data.n_cameras=12", "data.width=48", "data.height=48",
+                   "system.localization.max_views=6",
+                   "system.refine.cycles=2", "system.refine.iterations_per_cycle=6", "system.refine.m=3",
+                   "system.densify.every=3", "system.eval.turntable_frames=2", "system.eval.max_test_views=2",
+                   # prune the region's source rows too (an edit prunes only what it added by default), so
+                   # that densify and prune move and resize the rows before the check below
+                   "system.densify.prune_only_added=false",
+                   "checkpoint.every_n_train_steps=100", "trainer.enable_progress_bar=false",
+                   config="configs/donut_add.yaml", small=False)
     seconds = time.perf_counter() - t0
-    trial = trial_of(tmp_path, "donut")
     m = metrics_of(trial)
     assert m["gaussians_before"] == 45624 and m["gaussians_after"] >= 45624
     assert m["mask_iou"] is not None and 0 < m["mask_iou"] <= 1
