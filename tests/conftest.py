@@ -53,12 +53,14 @@ def small_demo_run(tmp_path_factory):
 # `make test` hands whole test files to its processes (pytest -n auto --dist loadfile), one at a
 # time as a process runs out of work. xdist's default order (the files with the most tests first)
 # leaves a file of one long test for the end, when the other process has nothing left to run: the
-# longest files go first instead, and the many short ones even out the processes' ends.
+# longest files go first instead (by their --durations), and the many short ones even out the
+# processes' ends; a file not named here runs after them.
 LONGEST_FILES = (
-    "test_regional_edit.py", "test_reliability.py", "test_bench_pipeline.py", "test_truth_suite.py",
-    "test_composite.py", "test_parallel.py", "test_workflow_face.py", "test_float_stability.py",
-    "test_launch_console.py", "test_reconstruct.py", "test_formats.py", "test_gpu_check.py",
-    "test_compactness.py", "test_launch.py", "test_initialize_shape.py", "test_device_and_batching.py",
+    "test_regional_edit.py", "test_reliability.py", "test_float_stability.py", "test_parallel.py",
+    "test_truth_suite.py", "test_bench_pipeline.py", "test_composite.py", "test_workflow_face.py",
+    "test_bench_scale.py", "test_pareto.py", "test_formats.py", "test_gpu_check.py", "test_launch_console.py",
+    "test_splat_truth.py", "test_reconstruct.py", "test_stability.py", "test_compactness.py",
+    "test_device_and_batching.py", "test_viewer.py", "test_initialize_shape.py", "test_launch.py",
 )
 
 
