@@ -25,9 +25,9 @@ from gs_regional.edit.change import NOISE_SIGMAS, edit_blend
 from gs_regional.edit.composite import (
     ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured,
 )
-from gs_regional.edit.localize import SEEN_MIN_WEIGHT, render_selection
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
+from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection
 from gs_regional.utils.sh import sh_to_rgb
 
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
