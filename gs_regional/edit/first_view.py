@@ -80,6 +80,18 @@ class FirstView:
         return next(c for c in self.checks if c.decides)
 
 
+def mask_areas(regions: List[torch.Tensor], masks2d: Optional[torch.Tensor],
+               calibratable: Optional[List[bool]] = None) -> torch.Tensor:
+    """(V,) what the first view is chosen by (§3.2: v_first = argmax_v Σ M_v, the view where the
+    editor is most confident about the region, usually a frontal one): the area of each view's 2D
+    mask (`masks2d`; of its localized `regions` when there are none), and -1 for the views that
+    are not `calibratable` (too few pixels outside the region for the monocular depth) when any is."""
+    areas = masks2d.flatten(1).sum(1).float() if masks2d is not None else torch.stack([r.sum() for r in regions]).float()
+    if calibratable is not None and any(calibratable):
+        areas = torch.where(torch.tensor(calibratable, device=areas.device), areas, torch.full_like(areas, -1.0))
+    return areas
+
+
 def behind_region(alpha: torch.Tensor, depth: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
     """(H, W) bool: where the source (rendered `alpha`, `depth`) shows something farther than the
     region by more than the region's own depth range (what an object added on it may cover). The

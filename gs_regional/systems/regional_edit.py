@@ -13,7 +13,7 @@ import torch
 from gs_regional.config import ConfigError, check_saved_config, need
 from gs_regional.edit.ablation import AblationConfig
 from gs_regional.edit.change import recoloured_fraction
-from gs_regional.edit.first_view import FirstView, check_edit, choose_first_view, stop_message
+from gs_regional.edit.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
 from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
 from gs_regional.edit.localize import (
     LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
@@ -185,22 +185,12 @@ class RegionalEdit(EditSystemBase):
         regions = [s.localized_masks.pop(i, None) for i in views]
         regions = [self.rendered_mask(i) if r is None else r for i, r in zip(views, regions)]
         localized = dict(zip(views, regions))
-        # v_first = argmax_v Σ M_v over the editor's own 2D masks (§3.2): the view where the 2D
-        # editor is most confident about the region, usually a frontal one.
         if s.masks2d is not None:
             regions = [r | m.bool().to(self.device) for r, m in zip(regions, s.masks2d)]
-            areas = s.masks2d.flatten(1).sum(1).float()
-        else:
-            areas = torch.stack([r.sum() for r in regions]).float()
-        if cfg.ablation.initialize and not bool(g.mask.all()):
-            # Among the views that leave enough pixels outside the region to calibrate the
-            # monocular depth on (a region that fills the view leaves none), when there are any.
-            calibratable = torch.tensor([
-                int(calibration_pixels(self.source_alpha(i), r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
-                for i, r in zip(views, regions)
-            ], device=areas.device)
-            if bool(calibratable.any()):
-                areas = torch.where(calibratable, areas, torch.full_like(areas, -1.0))
+        calibratable = None if not cfg.ablation.initialize or bool(g.mask.all()) else [
+            int(calibration_pixels(self.source_alpha(i), r, cfg.init).sum()) >= cfg.init.min_calibration_pixels
+            for i, r in zip(views, regions)]
+        areas = mask_areas(regions, s.masks2d, calibratable)
         masks2d = [localized[u] if s.masks2d is None else s.masks2d[k].bool().to(self.device) for k, u in enumerate(views)]
         whole = bool(g.mask.all())
         first = choose_first_view(
