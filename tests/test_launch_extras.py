@@ -29,7 +29,7 @@ def test_switching_the_guidance_type_drops_the_old_types_keys(caplog):
     with caplog.at_level(logging.INFO, logger="gs_regional.config"):
         cfg = read("system.guidance_type=grayscale-editor", "system.guidance.strength=0.5")
     # The key both types take (batch_size) stays, the command line's key is kept.
-    assert dict(cfg.system.guidance) == {"batch_size": 1, "strength": 0.5}
+    assert dict(cfg.system.guidance) == {"batch_size": "auto", "strength": 0.5}
     editor = find("grayscale-editor", kind="guidance")(cfg.system.guidance)
     assert editor.cfg.strength == 0.5
     (note,) = [r.getMessage() for r in caplog.records if r.name == "gs_regional.config"]
