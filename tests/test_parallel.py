@@ -18,6 +18,9 @@ from gs_regional.systems import parallel
 # Every run is the small demo (tests/data/small_demo.yaml): 3 cycles of 4 steps, densifying every
 # 2 steps, 4 views per cycle (m=3 and the frontal view).
 TWO = ["trainer.accelerator=cpu", "trainer.devices=2"]
+# The two-process run checkpoints at steps 6 and 12: its last.ckpt.previous, in the second cycle
+# after the first's densifications, is where the resume tests start from.
+CHECKPOINTS = "checkpoint.every_n_train_steps=6"
 
 
 # ----------------------------------------------------------------------------- without processes
@@ -149,7 +152,7 @@ def launch_two(out, name, *overrides):
 def runs(tmp_path_factory, small_demo_run):
     """The small demo on one process (the session's run) and on two."""
     out = tmp_path_factory.mktemp("parallel")
-    two, stdout = launch_two(out, "two", *TWO)
+    two, stdout = launch_two(out, "two", *TWO, CHECKPOINTS)
     return {"out": out, "one": small_demo_run, "two": two, "two_stdout": stdout}
 
 
@@ -190,19 +193,17 @@ def test_two_processes_write_one_set_of_outputs(runs):
 
 @pytest.mark.parametrize("processes", [1, 2], ids=["resumed-on-1", "resumed-on-2"])
 def test_a_two_process_run_resumes_on_any_number_of_processes(runs, processes, tmp_path):
-    """Stopped after 6 of 12 steps (in the second cycle, after the first's densifications) on 2 processes,
-    resumed on 1 or 2: the edit of the uninterrupted run."""
-    stopped = runs.get("stopped")
-    if stopped is None:
-        stopped, _ = launch_two(runs["out"], "stopped", *TWO, "trainer.max_steps=6")
-        runs["stopped"] = stopped
-    trial = tmp_path / "stopped" / Path(stopped).name
-    shutil.copytree(stopped, trial)
-    resume = f"resume={trial / 'ckpts' / 'last.ckpt'}"
+    """The two-process run's checkpoint at step 6 of 12 (in the second cycle, after the first's
+    densifications), resumed on 1 or 2 processes: the edit of the uninterrupted run."""
+    trial = tmp_path / "stopped" / Path(runs["two"]).name
+    shutil.copytree(runs["two"], trial)
+    ckpt = trial / "ckpts" / "last.ckpt.previous"
+    assert torch.load(ckpt, map_location="cpu", weights_only=True)["global_step"] == 6
+    resume = f"resume={ckpt}"
     if processes == 2:
-        resumed, _ = launch_two(tmp_path, "stopped", *TWO, resume)
+        resumed, _ = launch_two(tmp_path, "stopped", *TWO, CHECKPOINTS, resume)
     else:  # one process needs no launcher: in this process (a Python start-up fewer)
-        resumed = launch(tmp_path, "stopped", resume)
+        resumed = launch(tmp_path, "stopped", CHECKPOINTS, resume)
     assert Path(resumed) == trial
     m = metrics(trial)
     assert m["world_size"] == processes
