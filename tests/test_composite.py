@@ -434,7 +434,7 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
     monkeypatch.setattr(regional_edit.RegionalEdit, "run_localize", with_rim)
     monkeypatch.setattr(strategies.Recolour, "after_edits", recorded)
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "system.ablation.localize_with_truth=true",
-                "system.refine.iterations_per_cycle=20")
+                "system.refine.iterations_per_cycle=10")
     launch(tmp_path, "gated", *recolour)
     gated, mask = metrics_of(trial_of(tmp_path, "gated")), seen["mask"]
     truth, rim = seen["truth"] & seen["watched"], seen["rim"] & seen["watched"]  # what no edited view sees never trains
