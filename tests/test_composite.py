@@ -510,7 +510,7 @@ def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path, monk
     from gs_regional.sim.scene import make_scene
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "data.width=48", "data.height=48",
-                "data.n_cameras=16", "system.localization.max_views=8", "system.refine.iterations_per_cycle=30",
+                "data.n_cameras=16", "system.localization.max_views=8", "system.refine.iterations_per_cycle=20",
                 "system.refine.m=5")
     _, labels, names = make_scene(0, 6000, 4000)
     eyes, head = (labels == names.index("eyes")).numpy(), (labels == names.index("head")).numpy()
