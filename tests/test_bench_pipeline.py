@@ -53,6 +53,13 @@ def test_tiny_pipeline_report(report):
         assert run["peak_rss_bytes"] > 100 * 2**20
         assert run["cuda_peak_bytes"] is None  # CPU run
         assert os.path.isfile(os.path.join(run["trial"], "save", "edited.ply"))
+        # The profile: start-up (what the stages do not time), the UNet's seconds and share of the
+        # wall time, and the views per UNet call batch_size auto chose (1 on a CPU) at 64x64.
+        assert 0 < run["startup_seconds"] < run["wall_seconds"]
+        assert 0 < run["unet_seconds"] < run["wall_seconds"] and 0 < run["unet_share"] <= 1
+        assert run["unet_share"] == pytest.approx(run["unet_seconds"] / run["wall_seconds"], abs=1e-3)
+        assert run["batch_size"] == {"64x64": 1}
+        assert run["prior_wait_seconds"] >= 0
     # UNet evaluations of this schedule, counted by the real guidance: localization 4 views x 2
     # branches; one full edit of 4 DDIM steps x 3 branches (the random-weight editor's first full
     # edit changes nothing beyond its noise, but its view shows the selection as well as any, so
@@ -71,6 +78,7 @@ def test_tiny_pipeline_report(report):
     assert regional["gaussians_after"] >= regional["gaussians_before"] == rep["scene"]["gaussians"]
     assert m["count_added_init"] > 0 or any("depth calibration rejected" in w for w in m["warnings"])
     assert "| regional-edit |" in stdout and "| in2n |" in stdout and "localize s" in stdout
+    assert "UNet share" in stdout and "1 at 64x64" in stdout
 
 
 @pytest.mark.parametrize("n", [3000, 25000])

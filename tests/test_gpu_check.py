@@ -425,3 +425,50 @@ def test_the_donut_timing_turns_the_safe_stops_off_and_fails_if_the_edit_stopped
     monkeypatch.setattr(launch, "main", fake_launch(None))
     res = gpu_checks.check_donut_edit(ctx)
     assert res["refine_edit_s"] == 2.0 and res["unet_evals"] == 10
+
+
+# --------------------------------------------------------------------------- the paper's budget
+def test_the_paper_budget_runs_each_size_and_writes_the_breakdown(tmp_path, monkeypatch):
+    """check_paper_budget runs pipeline.py once per size (the paper's budget on a GPU: no schedule
+    options, so pipeline.py's real-size BUDGETS apply; the smoke schedule on the CPU) and writes
+    every run's stages, start-up, UNet share and batch beside the table."""
+    from gs_regional.bench import pipeline as bench_pipeline
+
+    gpu = {**json.loads(json.dumps(gpu_checks.GPU_SETTINGS)), "smoke": False, "work": str(tmp_path), "models_dir": None}
+    argv = gpu_checks.paper_budget_argv(gpu, 100_000)
+    assert "--no-load" in argv and "--fp16" in argv and "--cycles" not in argv and "--iterations" not in argv
+    assert argv[argv.index("--gaussians") + 1] == "100000" and argv[argv.index("--in2n-steps") + 1] == "0"
+    assert gpu["paper_gaussians"] == [100_000, 1_000_000] and "paper_budget" in gpu_checks.CHECKS
+
+    ctx = {**json.loads(json.dumps(gpu_checks.CPU_SMOKE_SETTINGS)), "smoke": True, "work": str(tmp_path), "models_dir": None}
+    assert "--cycles" in gpu_checks.paper_budget_argv(ctx, 2_000)
+    seen = []
+
+    def fake_main(argv):
+        n = int(argv[argv.index("--gaussians") + 1])
+        seen.append(n)
+        run = {"seconds": {"localize": 1.0, "refine_edit": 2.0}, "seconds_total": 3.0, "wall_seconds": 5.0,
+               "startup_seconds": 2.0, "unet_evals": 12, "unet_seconds": 1.5, "unet_share": 0.3,
+               "batch_size": {"64x64": 1}, "prior_wait_seconds": 0.0, "vae_encodes": 3, "vae_decodes": 1,
+               "cuda_peak_bytes": None, "peak_rss_bytes": 2**30, "gaussians_after": n}
+        return {"models": "tiny", "dtype": "float32", "device": {"device": "cpu"}, "scene": {"gaussians": n, "width": 64},
+                "schedule": {"cycles": 1}, "runs": {"regional-edit": run}}
+
+    monkeypatch.setattr(bench_pipeline, "main", fake_main)
+    res = gpu_checks.check_paper_budget(ctx)
+    assert seen == [2_000, 4_000]
+    assert res["2k_wall_s"] == 5.0 and res["4k_unet_share"] == 0.3 and res["2k_batch"] == "1"
+    with open(res["breakdown"]) as f:
+        breakdown = json.load(f)
+    assert os.path.dirname(res["breakdown"]) == str(tmp_path)
+    assert set(breakdown["runs"]) == {"2k", "4k"}
+    r = breakdown["runs"]["4k"]
+    assert r["stages_s"] == {"localize": 1.0, "refine_edit": 2.0} and r["startup_s"] == 2.0 and r["unet_s"] == 1.5
+    assert r["batch_size"] == {"64x64": 1} and r["peak_rss_gib"] == 1.0
+
+    def failing(argv):
+        raise SystemExit("step failed (exit code 1); log x:\nRuntimeError: CUDA out of memory")
+
+    monkeypatch.setattr(bench_pipeline, "main", failing)
+    with pytest.raises(gpu_checks.CheckFailed, match="2,000 Gaussians: RuntimeError: CUDA out of memory"):
+        gpu_checks.check_paper_budget(ctx)

@@ -22,6 +22,12 @@ and failed raises CheckFailed or returns its results with `_fail` (the reason).
                    to 1,000,000 Gaussians (--gaussians), a short schedule (1 cycle of 100 steps, 8
                    localization views, m = 8; no in2n): per-stage seconds, UNet evaluations, peak
                    CUDA memory
+  paper_budget     the paper's budget (pipeline.py BUDGETS["real-size"]: 3 cycles of 500 steps, m = 20,
+                   24 localization views, 20 DDIM steps) with --fp16 at 512², the synthetic scene
+                   resampled to 100,000 and to 1,000,000 Gaussians (no in2n, no load step): per run
+                   every stage, start-up, the UNet's seconds and share of the wall time, the views per
+                   UNet call batch_size auto chose, the wait for the priors, peak CUDA memory and RSS;
+                   written as paper_budget.json beside the table's JSON
   donut_edit       the donut (../shared/data/donut/donut.ply, or $GS_REGIONAL_DATA) edited end to end
                    with configs/donut_add.yaml through launch.main on the GPU, its simulated priors
                    replaced by the real-size random-weight IP2P and Depth Anything, at 512², renderer
@@ -58,11 +64,13 @@ PROMPT = "put a cherry on top"
 # The real-size runs on the GPU (bench_pipeline and the donut): short schedules that fit the budget.
 GPU_SETTINGS = dict(device="cuda", models="real-size", resolution=512, gaussians=1_000_000, render_gaussians=50_000,
                     schedule=dict(cycles=1, t_schedule=[750], shape_t_schedule=[450], iterations=100, m=8,
-                                  max_views=8, densify_every=50, turntable_frames=8, ddim_steps=20))
+                                  max_views=8, densify_every=50, turntable_frames=8, ddim_steps=20),
+                    paper_gaussians=[100_000, 1_000_000])
 # --smoke-on-cpu (a developer's check of the wiring, not a measurement): tiny models, small sizes.
 CPU_SMOKE_SETTINGS = dict(device="cpu", models="tiny", resolution=64, gaussians=20_000, render_gaussians=2_000,
                           schedule=dict(cycles=1, t_schedule=[750], shape_t_schedule=[750], iterations=6, m=2,
-                                        max_views=4, densify_every=3, turntable_frames=2, ddim_steps=4))
+                                        max_views=4, densify_every=3, turntable_frames=2, ddim_steps=4),
+                          paper_gaussians=[2_000, 4_000])
 # Tolerances of tests/test_renderer.py::test_gsplat_agrees_with_torch_rasterizer.
 FORWARD_TOL = 1e-3  # rgb and alpha, absolute; depth, relative on pixels with alpha > 0.5
 BACKWARD_TOL = 1e-2  # gradients, max abs difference relative to the largest gradient
@@ -95,6 +103,7 @@ CHECKS: Dict[str, Check] = {
     "ip2p_fp16": Check("IP2P guided step at 512², float16, real-size weights", 120),
     "ip2p_bf16": Check("IP2P guided step at 512², bfloat16, real-size weights", 120),
     "bench_pipeline": Check("bench_pipeline: the regional edit at 1M Gaussians, 512², fp16", 240),
+    "paper_budget": Check("the paper's budget at 100k and 1M Gaussians, 512², fp16: the stage breakdown", 300),
     "donut_edit": Check("the donut edited end to end with real-size random-weight priors", 200),
     "two_process": Check("launch.py configs/demo.yaml with trainer.devices=2", 180),
 }
@@ -358,19 +367,77 @@ def check_ip2p_bf16(ctx: dict) -> dict:
     return ip2p_step(ctx, "bfloat16")
 
 
-def bench_pipeline_argv(ctx: dict) -> List[str]:
-    s = ctx["schedule"]
-    argv = ["--models", ctx["models"], "--out", os.path.join(ctx["work"], "bench_pipeline"), "--device", ctx["device"],
-            "--resolution", str(ctx["resolution"]), "--gaussians", str(ctx["gaussians"]), "--in2n-steps", "0",
-            "--cycles", str(s["cycles"]), "--t-schedule", *map(str, s["t_schedule"]),
+def _schedule_argv(s: dict) -> List[str]:
+    return ["--cycles", str(s["cycles"]), "--t-schedule", *map(str, s["t_schedule"]),
             "--shape-t-schedule", *map(str, s["shape_t_schedule"]), "--iterations", str(s["iterations"]),
             "--m", str(s["m"]), "--max-views", str(s["max_views"]), "--densify-every", str(s["densify_every"]),
             "--turntable-frames", str(s["turntable_frames"]), "--ddim-steps", str(s["ddim_steps"])]
+
+
+def _pipeline_argv(ctx: dict, out: str, gaussians: int) -> List[str]:
+    argv = ["--models", ctx["models"], "--out", out, "--device", ctx["device"], "--resolution", str(ctx["resolution"]),
+            "--gaussians", str(gaussians), "--in2n-steps", "0"]
     if ctx["device"].startswith("cuda"):
         argv.append("--fp16")
     if ctx.get("models_dir"):
         argv += ["--models-dir", ctx["models_dir"]]
     return argv
+
+
+def bench_pipeline_argv(ctx: dict) -> List[str]:
+    return [*_pipeline_argv(ctx, os.path.join(ctx["work"], "bench_pipeline"), ctx["gaussians"]),
+            *_schedule_argv(ctx["schedule"])]
+
+
+def paper_budget_argv(ctx: dict, gaussians: int) -> List[str]:
+    """pipeline.py at the paper's budget (its real-size BUDGETS, unset options take them) with
+    `gaussians`, without the load step; the CPU smoke run takes ctx's short schedule instead."""
+    argv = [*_pipeline_argv(ctx, os.path.join(ctx["work"], "paper_budget", str(gaussians)), gaussians), "--no-load"]
+    if ctx.get("smoke"):
+        argv += _schedule_argv(ctx["schedule"])
+    return argv
+
+
+def _count_label(n: int) -> str:
+    return f"{n / 1e6:g}M" if n >= 1_000_000 else f"{n / 1e3:g}k"
+
+
+def check_paper_budget(ctx: dict) -> dict:
+    """The regional edit at the paper's budget at each of ctx['paper_gaussians'], one process
+    each; the whole breakdown goes to WORK/paper_budget.json, the table row keeps the headlines."""
+    from gs_regional.bench import pipeline as bench_pipeline
+
+    runs, report = {}, None
+    for n in ctx["paper_gaussians"]:
+        try:
+            report = bench_pipeline.main(paper_budget_argv(ctx, n))
+        except SystemExit as e:
+            if e.code in (0, None):
+                raise
+            raise CheckFailed(f"{n:,} Gaussians: {last_line(str(e.code))}") from None
+        run = report["runs"]["regional-edit"]
+        runs[_count_label(n)] = {
+            "gaussians": report["scene"]["gaussians"], "wall_s": run["wall_seconds"], "startup_s": run["startup_seconds"],
+            "stages_s": run["seconds"], "stages_total_s": run["seconds_total"], "unet_evals": run["unet_evals"],
+            "unet_s": run["unet_seconds"], "unet_share": run["unet_share"], "batch_size": run["batch_size"],
+            "prior_wait_s": run["prior_wait_seconds"], "vae_encodes": run["vae_encodes"], "vae_decodes": run["vae_decodes"],
+            "cuda_peak_gib": _gib(run["cuda_peak_bytes"]), "peak_rss_gib": _gib(run["peak_rss_bytes"]),
+            "gaussians_after": run["gaussians_after"], "report": os.path.join(ctx["work"], "paper_budget", str(n),
+                                                                              "bench_pipeline.json")}
+    breakdown = {"schema": 1, "models": report["models"], "dtype": report["dtype"], "device": report["device"],
+                 "resolution": report["scene"]["width"], "renderer": _renderer_auto(ctx["device"]),
+                 "schedule": report["schedule"], "runs": runs}
+    path = os.path.join(ctx["work"], "paper_budget.json")
+    with open(path, "w") as f:
+        json.dump(breakdown, f, indent=2)
+    res: Dict[str, Any] = {}
+    for label, r in runs.items():
+        res.update({f"{label}_wall_s": r["wall_s"], f"{label}_startup_s": r["startup_s"],
+                    f"{label}_unet_share": r["unet_share"],
+                    f"{label}_batch": ",".join(str(b) for b in r["batch_size"].values()) or "-",
+                    f"{label}_cuda_peak_gib": r["cuda_peak_gib"]})
+    res["breakdown"] = path
+    return res
 
 
 def check_bench_pipeline(ctx: dict) -> dict:

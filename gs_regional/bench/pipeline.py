@@ -21,8 +21,10 @@ Steps, each in its own process (so that peak CPU RSS and peak CUDA memory are pe
   regional-edit  launch.py --config configs/edit.yaml --train ...
   in2n           the same data/guidance sections with system_type in2n
 It writes DIR/bench_pipeline.json and prints a table: per-stage seconds (the names of the runs'
-metrics.json: localize, initialize, refine_edit, refine_train, ... ), UNet evaluations, VAE
-encodes/decodes, peak CPU RSS and peak CUDA memory, with the device named.
+metrics.json: localize, initialize, refine_edit, refine_train, ... ), start-up (the wall time the
+stages do not cover), UNet evaluations, the UNet's seconds and share of the wall time, the views
+per UNet call the guidance chose (batch_size auto), VAE encodes/decodes, peak CPU RSS and peak
+CUDA memory, with the device named. --no-load skips the load step.
 """
 from __future__ import annotations
 
@@ -291,6 +293,16 @@ def trial_metrics(args, name: str) -> dict:
 
 
 # ----------------------------------------------------------------------------------- report
+def unet_profile(metrics: dict, wall_seconds: float) -> dict:
+    """From a run's metrics.json: the UNet's wall seconds and their share of the run's wall time,
+    the views per UNet call the guidance used at each resolution ("WxH": batch), and how long the
+    first stage waited for the priors still loading."""
+    unet_s = float(metrics.get("unet_seconds", 0.0))
+    return {"unet_seconds": round(unet_s, 3), "unet_share": round(min(unet_s / wall_seconds, 1.0), 4) if wall_seconds > 0 else 0.0,
+            "batch_size": dict(metrics.get("guidance_batch_size", {})),
+            "prior_wait_seconds": metrics.get("prior_wait_seconds")}
+
+
 def device_description(device: str) -> dict:
     import torch
 
@@ -330,16 +342,20 @@ def table(report: dict) -> str:
     stages = []
     for r in runs.values():
         stages += [s for s in r["seconds"] if s not in stages]
-    head = ["method", "wall s", "start-up s", *[f"{s} s" for s in stages], "UNet evals", "VAE enc", "VAE dec",
-            "peak RSS GiB", "peak CUDA GiB"]
+    head = ["method", "wall s", "start-up s", *[f"{s} s" for s in stages], "UNet evals", "UNet s", "UNet share",
+            "batch", "VAE enc", "VAE dec", "peak RSS GiB", "peak CUDA GiB"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for label, r in runs.items():
         cells = [label, f"{r['wall_seconds']:.1f}", f"{r['startup_seconds']:.1f}",
                  *[f"{r['seconds'][s]:.2f}" if s in r["seconds"] else "-" for s in stages],
-                 str(r["unet_evals"]), str(r["vae_encodes"]), str(r["vae_decodes"]),
+                 str(r["unet_evals"]), f"{r['unet_seconds']:.2f}", f"{r['unet_share']:.0%}",
+                 ", ".join(f"{b} at {hw}" for hw, b in r["batch_size"].items()) or "-",
+                 str(r["vae_encodes"]), str(r["vae_decodes"]),
                  _gib(r["peak_rss_bytes"]), _gib(r["cuda_peak_bytes"])]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", load_line(report["load"])]
+    lines.append("")
+    if "load" in report:
+        lines.append(load_line(report["load"]))
     sc = report["scene"]
     lines.append(f"{report['models']} priors ({report['dtype']}) on {report['device']['name']}; scene {sc['source']}: "
                  f"{sc['gaussians']} Gaussians, {sc['cameras']} cameras at {sc['width']}x{sc['height']}")
@@ -374,7 +390,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--edit-every", type=int, default=10, help="in2n: steps between dataset edits")
     ap.add_argument("--turntable-frames", type=int, default=None)
     ap.add_argument("--load-only", action="store_true", help="only the load step (load both priors, one call each)")
+    ap.add_argument("--no-load", action="store_true", help="skip the load step (the runs alone)")
     args = ap.parse_args(argv)
+    if args.load_only and args.no_load:
+        ap.error("--load-only and --no-load exclude each other")
     if bool(args.ply) != bool(args.data):
         ap.error("--ply and --data go together (a trained scene and its cameras)")
     for key, value in BUDGETS[args.models].items():  # unset options take the budget of --models
@@ -409,10 +428,11 @@ def main(argv=None) -> dict:
     print(f"priors ({args.models}): {priors['ip2p']}, {priors['depth_anything']}")
 
     step = lambda name: (os.path.join(args.out, "logs", f"{name}.json"), os.path.join(args.out, "logs", f"{name}.log"))  # noqa: E731
-    res, log = step("load")
-    report["load"] = run_child(["--child-load", res, priors["ip2p"], priors["depth_anything"], args.device,
-                                report["dtype"], str(args.resolution)], res, log, env)
-    print(f"load: {report['load']['seconds']}")
+    if not args.no_load:
+        res, log = step("load")
+        report["load"] = run_child(["--child-load", res, priors["ip2p"], priors["depth_anything"], args.device,
+                                    report["dtype"], str(args.resolution)], res, log, env)
+        print(f"load: {report['load']['seconds']}")
     if args.load_only:
         return _write(args, report)
 
@@ -450,6 +470,7 @@ def main(argv=None) -> dict:
             # process start, imports, loading the priors, Lightning set-up: what the stages do not time
             "startup_seconds": round(child["wall_seconds"] - m["seconds_total"], 3),
             "unet_evals": m["unet_evals"], "vae_encodes": m["vae_encodes"], "vae_decodes": m["vae_decodes"],
+            **unet_profile(m, child["wall_seconds"]),
             "peak_rss_bytes": child["peak_rss_bytes"], "cuda_peak_bytes": child["cuda_peak_bytes"],
             "gaussians_before": m["gaussians_before"], "gaussians_after": m["gaussians_after"], "trial": m["trial"],
         }

@@ -64,8 +64,7 @@ class DepthAnything(DepthEstimator):
         from transformers.models.auto.modeling_auto import MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES
 
         c = self.cfg
-        source = Pretrained("DepthAnything", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size,
-                            key="system.depth.pretrained")
+        source = self.check_source(c)
         self.device, self.dtype = source.device, source.dtype
         config = source.load_config(MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES, "depth-estimation")
         source.require({"": ("preprocessor_config.json",)}, "image processor")
@@ -84,6 +83,15 @@ class DepthAnything(DepthEstimator):
         self.mode = processor_resample(proc)
         self.do_normalize = bool(getattr(proc, "do_normalize", True))
         self.mean, self.std = processor_normalization(proc, self.device)
+
+    @classmethod
+    def check_source(cls, c: "DepthAnything.Config") -> Pretrained:
+        """The checks that need no weights (a parsed config): the device, and the folder with its
+        config (or the hub id in the cache or on the hub)."""
+        source = Pretrained("DepthAnything", c.pretrained, c.device, c.dtype, c.local_files_only, c.max_batch_size,
+                            key="system.depth.pretrained")
+        source.require({"": ("config.json",)})
+        return source
 
     def input_size(self, h: int, w: int) -> Tuple[int, int]:
         """The size the model sees for an h×w image."""

@@ -12,8 +12,10 @@ image, seed and camera only, never on which views share the call or how the call
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import numbers
+import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
@@ -56,7 +58,8 @@ class Guidance(Configurable):
     """A 2D editor. Images are (B, H, W, 3) float tensors in [0, 1].
 
     Counters (reported by systems): `unet_evals` (one guided step on B images = 3*B),
-    `vae_encodes`, `vae_decodes` (per image); a plugin updates those it spends.
+    `vae_encodes`, `vae_decodes` (per image); a plugin updates those it spends. `unet_seconds`:
+    the wall seconds of the model calls a plugin wraps in `unet_timer()`.
     """
 
     @dataclass
@@ -81,24 +84,38 @@ class Guidance(Configurable):
                 f"{type(self).__name__}.Config must derive from Guidance.Config (it holds batch_size, the views "
                 "per model call): write `class Config(Guidance.Config):`"
             )
-        b = self.cfg.batch_size
-        if not (b == AUTO or (isinstance(b, int) and not isinstance(b, bool) and b >= 1)):
-            raise ConfigError(f"{component_name(self)}: batch_size (views per model call) must be >= 1 or '{AUTO}', "
-                              f"got {b!r}")
+        Guidance.check_source(self.cfg, component_name(self))
         self._auto_batches: Dict[Tuple[int, int], int] = {}  # (H, W) -> the batch "auto" chose there
+        self._batches: Dict[Tuple[int, int], int] = {}  # (H, W) -> the batch used there
         self.reset_counters()
+
+    @classmethod
+    def check_source(cls, cfg, name: str = "") -> None:
+        """The checks of a parsed config that need no model (a system runs them before it starts
+        loading its priors on another thread; a plugin that loads weights extends them)."""
+        b = cfg.batch_size
+        if not (b == AUTO or (isinstance(b, int) and not isinstance(b, bool) and b >= 1)):
+            raise ConfigError(f"{name or cls.__dict__.get('registered_name', cls.__name__)}: batch_size (views per "
+                              f"model call) must be >= 1 or '{AUTO}', got {b!r}")
 
     def batch_size_for(self, images: torch.Tensor) -> int:
         """Views per model call for (B, H, W, 3) `images`: the configured number, or for "auto" the
         one measured once per resolution (`auto_batch_size`)."""
-        if self.cfg.batch_size != AUTO:
-            return int(self.cfg.batch_size)
         hw = (int(images.shape[1]), int(images.shape[2]))
+        if self.cfg.batch_size != AUTO:
+            self._batches[hw] = int(self.cfg.batch_size)
+            return int(self.cfg.batch_size)
         if hw not in self._auto_batches:
             self._auto_batches[hw] = self.auto_batch_size(images[:1])
             log.info("%s: batch_size auto -> %d views per model call at %dx%d", component_name(self),
                      self._auto_batches[hw], hw[1], hw[0])
+        self._batches[hw] = self._auto_batches[hw]
         return self._auto_batches[hw]
+
+    def batches_chosen(self) -> Dict[str, int]:
+        """{"WxH": views per model call} at every resolution called so far (the configured
+        batch_size, or what "auto" chose there)."""
+        return {f"{w}x{h}": b for (h, w), b in sorted(self._batches.items())}
 
     def auto_batch_size(self, image: torch.Tensor) -> int:
         """The batch "auto" chooses: 1 off CUDA (a CPU gains nothing from larger batches) or for a
@@ -107,11 +124,12 @@ class Guidance(Configurable):
         device = torch.device(getattr(self, "device", "cpu"))
         if device.type != "cuda":
             return 1
-        counters = self.counters()
+        counters, unet_seconds = self.counters(), self.unet_seconds
         torch.cuda.synchronize(device)
         free = torch.cuda.mem_get_info(device)[0]
         peaks = self._probe_peaks(image)
         self.unet_evals, self.vae_encodes, self.vae_decodes = counters.values()  # the probe is not the edit's
+        self.unet_seconds = unet_seconds
         if peaks is None:
             return 1
         return fitting_batch(free, *peaks)
@@ -125,6 +143,23 @@ class Guidance(Configurable):
         self.unet_evals = 0
         self.vae_encodes = 0
         self.vae_decodes = 0
+        self.unet_seconds = 0.0
+
+    @contextlib.contextmanager
+    def unet_timer(self):
+        """Adds the block's wall seconds to `unet_seconds`; on CUDA it synchronizes before and
+        after, so that the seconds are the model's and not the queue's."""
+        device = torch.device(getattr(self, "device", "cpu"))
+        cuda = device.type == "cuda"
+        if cuda:
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            if cuda:
+                torch.cuda.synchronize(device)
+            self.unet_seconds += time.perf_counter() - t0
 
     def counters(self) -> Dict[str, int]:
         return {"unet_evals": self.unet_evals, "vae_encodes": self.vae_encodes, "vae_decodes": self.vae_decodes}

@@ -60,15 +60,24 @@ class InstructPix2Pix(Guidance):
     def __init__(self, cfg=None, where: str = "") -> None:
         super().__init__(cfg, where)
         c = self.cfg
-        if c.num_inference_steps < 1:
-            raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
-        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only,
-                            key="system.guidance.pretrained")
+        source = self.check_source(c)
         self.device, self.dtype = source.device, source.dtype
         self._load(source)
         self._emb_cache: Dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------ loading
+
+    @classmethod
+    def check_source(cls, c: "InstructPix2Pix.Config") -> Pretrained:
+        """The checks that need no weights (a parsed config): the settings, the device, and the
+        folder with its five components (or the hub id in the cache or on the hub)."""
+        super().check_source(c)
+        if c.num_inference_steps < 1:
+            raise ValueError(f"num_inference_steps must be >= 1, got {c.num_inference_steps}")
+        source = Pretrained("InstructPix2Pix", c.pretrained, c.device, c.dtype, c.local_files_only,
+                            key="system.guidance.pretrained")
+        source.require(_IP2P_COMPONENTS)
+        return source
 
     def _load(self, source: Pretrained) -> None:
         from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
@@ -180,7 +189,8 @@ class InstructPix2Pix(Guidance):
         inp = torch.cat([latents, image_latents], dim=1).to(self.dtype)
         if self.cfg.channels_last:
             inp = inp.contiguous(memory_format=torch.channels_last)
-        return unet(inp, t.to(self.device), encoder_hidden_states=emb).sample.float()
+        with self.unet_timer():
+            return unet(inp, t.to(self.device), encoder_hidden_states=emb).sample.float()
 
     def _noise(self, shape, generators: List[torch.Generator]) -> torch.Tensor:
         """(B, *shape) noise, view b drawn from generators[b]: on the CPU, so that a view's noise

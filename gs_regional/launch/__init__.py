@@ -7,8 +7,10 @@
    changed on the command line drops the keys its new type does not take)           run.py, sections.py
 3. seed, read the scene (`data_type`), check the system's input files and settings,
    load and compare a `resume=` checkpoint, then build the system (`system_type`)
-   with its priors: bad config, input files or checkpoints stop here, before any
-   trial dir exists and before any model is loaded                                  run.py, checkpoints.py
+   with its priors: bad config, input files, prior folders or checkpoints stop here,
+   before any trial dir exists and before any model is loaded (with CUDA the priors
+   then load on a background thread until the first stage waits for them; weights
+   that fail to load end the run there, the trial dir removed)                       run.py, checkpoints.py
 4. make the trial directory `<exp_root_dir>/<name>/<tag>@<timestamp>` (or reuse the
    one of a `resume=<trial>/ckpts/last.ckpt`), locked against a second writer, with
    configs/parsed.yaml, configs/raw.yaml and cmd.txt                                 trial.py

@@ -25,6 +25,7 @@ from gs_regional.renderers.select import check_renderer_config, make_renderer
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.systems import parallel
 from gs_regional.systems.base import GaussianSystem
+from gs_regional.utils.pretrained import PriorLoader
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +103,11 @@ class EditSystemBase(GaussianSystem):
         cfg.export.check()
         self._source_renders: Optional[List[torch.Tensor]] = None
         # The 2D editor is not an nn.Module of the system: its weights never enter checkpoints.
-        self.guidance = find(cfg.guidance_type, kind="guidance", key="system.guidance_type")(cfg.guidance)
+        # With CUDA the priors load on a background thread while the scene is read and the source
+        # views render (`PriorLoader`): a missing folder fails here, a load error where the system
+        # waits for them (on_fit_start) or first uses one.
+        self.priors = PriorLoader()
+        self.priors.start("guidance", find(cfg.guidance_type, kind="guidance", key="system.guidance_type"), cfg.guidance)
         self.lpips = None
         if cfg.lambda_lpips > 0:
             try:
@@ -116,6 +121,28 @@ class EditSystemBase(GaussianSystem):
         self.timings: Dict[str, float] = {}
         self.counts: Dict[str, int] = {}
         self.warnings: List[str] = []  # what the run noticed going wrong; metrics.json lists them
+
+    @property
+    def guidance(self):
+        """The 2D editor (waits for it while it loads)."""
+        priors = self.__dict__.get("priors")
+        if priors is None:
+            raise AttributeError("guidance: the system has not built its priors yet (configure())")
+        return priors.get("guidance")
+
+    @guidance.setter
+    def guidance(self, value) -> None:
+        self.__dict__.setdefault("priors", PriorLoader()).set("guidance", value)
+
+    @property
+    def depth_estimator(self):
+        """The depth estimator, None when the system has none (waits for it while it loads)."""
+        priors = self.__dict__.get("priors")
+        return None if priors is None else priors.get("depth_estimator")
+
+    @depth_estimator.setter
+    def depth_estimator(self, value) -> None:
+        self.__dict__.setdefault("priors", PriorLoader()).set("depth_estimator", value)
 
     # ----- scene ---------------------------------------------------------------------------------
     def setup(self, stage: Optional[str] = None) -> None:
@@ -173,6 +200,11 @@ class EditSystemBase(GaussianSystem):
                 renders = [self.render_view(i, self.source_model)["rgb"] for i in range(len(cams))]
                 self._source_renders = [self.as_image(r, "the source renders") for r in renders]
         self.add_time("source_renders", time.perf_counter() - t0)
+        # Before the first stage, and before Lightning's loops draw from the global random state
+        # that the priors' constructors draw from.
+        t0 = time.perf_counter()
+        self.priors.wait()
+        self.prior_wait_seconds = time.perf_counter() - t0
 
     def as_image(self, render: torch.Tensor, what: str) -> torch.Tensor:
         """A render as the 2D priors take images: in [0, 1]. A splat fitted to photos renders
@@ -405,6 +437,10 @@ class EditSystemBase(GaussianSystem):
             "gaussians_after": self.geometry.num_gaussians,
             **{f"count_{k}": v for k, v in self.counts.items()},
             **self.guidance.counters(),  # with several processes, every process's work (map_views)
+            # The UNet's wall seconds (this process's calls) and the views per model call at each resolution.
+            "unet_seconds": round(float(getattr(self.guidance, "unet_seconds", 0.0)), 3),
+            "guidance_batch_size": self.guidance.batches_chosen() if hasattr(self.guidance, "batches_chosen") else {},
+            "prior_wait_seconds": round(float(getattr(self, "prior_wait_seconds", 0.0)), 3),
             "world_size": parallel.world_size(self),
         }
         # Fidelity of what should not have changed, against the source renders.

@@ -73,8 +73,9 @@ class RegionalEdit(EditSystemBase):
         self.check_settings()  # before configure() loads the priors
         self.configure()
         self.depth_estimator = None
-        if self.cfg.ablation.initialize:
-            self.depth_estimator = find(self.cfg.depth_type, kind="depth", key="system.depth_type")(self.cfg.depth)
+        if self.cfg.ablation.initialize:  # loads after the guidance, on the same thread
+            self.priors.start("depth_estimator", find(self.cfg.depth_type, kind="depth", key="system.depth_type"),
+                              self.cfg.depth)
         self.state = EditState()
         self.strategy: Optional[EditStrategy] = None  # chosen after initialization
 

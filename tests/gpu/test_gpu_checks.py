@@ -28,6 +28,10 @@ def test_bench_pipeline(check, priors):
     check.run(checks.check_bench_pipeline)
 
 
+def test_paper_budget(check, priors):
+    check.run(checks.check_paper_budget)
+
+
 def test_donut_edit(check, priors):
     check.run(checks.check_donut_edit)
 
