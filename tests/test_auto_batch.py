@@ -78,9 +78,8 @@ def test_bad_batch_size_names_the_key(bad):
 
 
 def test_configs_ship_auto():
-    from pathlib import Path
-
     from omegaconf import OmegaConf
+    from trial_helpers import ROOT
 
-    edit = OmegaConf.load(Path(__file__).resolve().parents[1] / "configs" / "edit.yaml")
+    edit = OmegaConf.load(ROOT / "configs" / "edit.yaml")
     assert edit.system.guidance.batch_size == guidance_base.AUTO

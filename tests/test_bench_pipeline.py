@@ -5,7 +5,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -13,7 +12,7 @@ import torch
 from gs_regional.bench.pipeline import resample_gaussians
 from gs_regional.sim.scene import make_scene
 
-ROOT = Path(__file__).resolve().parents[1]
+from trial_helpers import ROOT
 
 # The synthetic scene resampled to 4000 Gaussians; 4 localization views, 2 cycles of 4 steps
 # editing the frontal view and its 2 nearest, 4 DDIM steps (the same start timesteps whether or not

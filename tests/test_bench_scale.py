@@ -2,9 +2,8 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from trial_helpers import ROOT
 STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune"]
 
 

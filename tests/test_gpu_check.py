@@ -20,7 +20,7 @@ from gs_regional.guidance.instructpix2pix import InstructPix2Pix
 from gs_regional.utils.pretrained import Pretrained, resolve_dtype
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-ROOT = Path(__file__).resolve().parents[1]
+from trial_helpers import ROOT
 SCRIPT = ROOT / "scripts" / "gpu_check.py"
 PROMPT = "give him a mustache"
 

@@ -4,7 +4,6 @@ thread at once, the constructors run in order on one thread, and a construction 
 in the thread that first uses the prior; through launch.py, a bad folder is one line naming it."""
 import argparse
 import glob
-import os
 import shutil
 import threading
 from dataclasses import dataclass
@@ -16,7 +15,7 @@ from gs_regional.launch import main
 from gs_regional.utils import pretrained
 from gs_regional.utils.pretrained import PretrainedLoadError, PriorLoader
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from trial_helpers import ROOT
 
 
 class _Prior:
@@ -75,7 +74,7 @@ def scene(tmp_path_factory):
 def _launch(scene, tmp, ip2p, depth, capsys):
     sc, _, _ = scene
     out = tmp / "runs"
-    rc = main(["--config", os.path.join(ROOT, "configs", "edit.yaml"), "--train", f"exp_root_dir={out}", "name=bad",
+    rc = main(["--config", str(ROOT / "configs" / "edit.yaml"), "--train", f"exp_root_dir={out}", "name=bad",
                f"data.source={sc['data_source']}", f"system.geometry.ply={sc['ply']}", "system.prompt=a hat",
                f"system.guidance.pretrained={ip2p}", f"system.depth.pretrained={depth}",
                "system.guidance.local_files_only=true", "system.depth.local_files_only=true",
