@@ -210,3 +210,107 @@ def test_localize_only_ends_every_run_after_localization(tmp_path, monkeypatch):
     monkeypatch.setattr(cli, "print_report", lambda payload: [])
     assert cli.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path), "--localize-only", "seed=3"]) == 0
     assert seen["overrides"] == ["seed=3", "system.stop_after=localize"] == ["seed=3", cli.LOCALIZE_ONLY]
+
+
+# ------------------------------------------------------------------------------------- whole parts
+def test_whole_part_cases_follow_the_draw_and_leave_its_cases_as_drawn(capsys):
+    plain = truth_cases.draw(SEED, 24)
+    with_parts = truth_cases.draw(SEED, 24, parts=8)
+    assert with_parts[:24] == plain  # the 24 are drawn as without --parts
+    extra = with_parts[24:]
+    assert [c["id"] for c in extra] == [f"c{i}" for i in range(25, 33)]
+    assert {c["kind"] for c in extra} == set(truth_cases.PART_KINDS)
+    assert truth_cases.draw(SEED, 24, parts=3)[24:] == extra[:3]  # more parts extend the same stream
+    synthetic_seeds = {c["scene"] for c in plain if c["scene"].startswith("synthetic:")}
+    for c in extra:
+        assert c["select"] == "part" and c["id"] not in {p["id"] for p in plain}
+        if c["scene"].startswith("synthetic:"):
+            assert c["scene"] in synthetic_seeds and c["part"] in truth_cases.SYNTHETIC_PARTS[c["kind"]]
+        else:
+            assert c["scene"] in ("donut", "face") and 0 <= c["part_size"] <= 1
+    assert all(c["scene"].startswith("synthetic:") for c in truth_cases.draw(SEED, 3, quick=True, parts=4)[3:])
+    assert cli.main(["--draw-only", "--seed", str(SEED)]) == 0
+    before = capsys.readouterr().out.splitlines()
+    assert cli.main(["--draw-only", "--seed", str(SEED), "--parts", "2"]) == 0
+    after = capsys.readouterr().out.splitlines()
+    assert after[1:25] == before[1:25] and [json.loads(x) for x in after[25:]] == extra[:2]
+
+
+def _blobs(offset: float, colours, n: int = 150):
+    import torch
+
+    from gs_regional.geometry.gaussian_model import GaussianModel
+    from gs_regional.utils.sh import rgb_to_sh
+
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.cat([torch.rand(n, 3, generator=gen) * 0.3 + torch.tensor([i * offset, 0.0, 0.0])
+                     for i in range(len(colours))])
+    rgb = torch.cat([torch.tensor(c).expand(n, 3) for c in colours])
+    m = len(pts)
+    return GaussianModel.from_tensors(means=pts, quats=torch.tensor([1.0, 0, 0, 0]).expand(m, 4).clone(),
+                                      log_scales=torch.full((m, 3), -4.0), opacity_logits=torch.full((m,), 2.0),
+                                      sh_dc=rgb_to_sh(rgb))
+
+
+def test_segments_of_two_coloured_blobs_are_the_blobs():
+    import torch
+
+    from gs_regional.sim.splat_truth import connected_components, segment_parts
+
+    # apart and of different colours; touching, told apart by colour alone; apart, of one colour
+    for offset, colours in ((3.0, [(0.9, 0.1, 0.1), (0.1, 0.2, 0.9)]), (0.3, [(0.9, 0.1, 0.1), (0.1, 0.2, 0.9)]),
+                            (3.0, [(0.2, 0.8, 0.2), (0.2, 0.8, 0.2)])):
+        labels = segment_parts(_blobs(offset, colours))
+        assert sorted(torch.bincount(labels).tolist()) == [150, 150], (offset, colours)
+        assert len(set(labels[:150].tolist())) == 1 and len(set(labels[150:].tolist())) == 1
+    # union-find on arrays: a chain, a pair, a lone node
+    comp = connected_components(6, torch.tensor([0, 1, 4]), torch.tensor([1, 2, 3]))
+    assert comp.tolist() == [0, 0, 0, 3, 3, 5]
+
+
+def test_a_named_part_case_is_exactly_the_parts_gaussians(tmp_path):
+    import torch
+
+    from gs_regional.bench.truth import scenes
+    from gs_regional.sim.scene import PART_NAMES, make_scene, part_masks
+    from gs_regional.sim.splat_truth import SplatTruthDataModule
+
+    _, labels, _ = make_scene(7)
+    masks = part_masks(7)
+    assert set(masks) == set(PART_NAMES)
+    for name, mask in masks.items():
+        assert torch.equal(mask, labels == PART_NAMES.index(name))
+    subject = scenes.synthetic_subject(str(tmp_path), 7, 8, 32)
+    subject.parts_dir = str(tmp_path / "parts")
+    for kind, part in (("recolor_part", "arms"), ("add_part", "head")):
+        case = {"id": "c25", "scene": "synthetic:7", "kind": kind, "run_seed": 3, "color": [0.1, 0.8, 0.2],
+                "color_name": "green", "native": False, "select": "part", "part": part, "add_radius": 0.1,
+                "add_count": 120}
+        config, overrides, facts = scenes.resolve(case, subject, truth_cases.settings(True))
+        data = {o.split("=", 1)[0][5:]: json.loads(o.split("=", 1)[1]) if o.split("=", 1)[1][:1] in "[\"" else o.split("=", 1)[1]
+                for o in overrides if o.startswith("data.")}
+        dm = SplatTruthDataModule(data)
+        dm.setup()
+        gt = dm.scene.ground_truth
+        assert torch.equal(gt.region, masks[part]), part  # the whole part, nothing else
+        assert facts["part_gaussians"] == int(masks[part].sum()) and facts["prompt"].endswith(
+            f"the {part} green" if kind == "recolor_part" else f"on the {part}")
+        assert 0 <= facts["side_view_fraction"] <= 1 and 0 <= facts["hidden_fraction"] <= 1
+        if kind == "add_part":
+            assert len(gt.edited) - len(gt.source) == 120
+        else:
+            assert len(gt.edited) == len(gt.source)
+
+
+def test_a_quick_whole_part_case_runs_and_is_reported_apart(tmp_path, capsys):
+    (case,) = [c for c in truth_cases.draw(SEED, 3, quick=True, parts=2) if c["kind"] == "recolor_part"]
+    assert cli.main(["--quick", "--seed", str(SEED), "--parts", "2", "--only", case["id"], "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    (r,) = json.loads((tmp_path / "truth_suite.json").read_text())["records"]
+    assert not r.get("error"), r
+    assert r["id"] == case["id"] and r["prompt"] == f"make the {case['part']} {case['color_name']}"
+    assert r["part_gaussians"] == r["region_gaussians"] > 0 and r["gaussians_added"] is not None
+    for key in ("side_view_fraction", "hidden_fraction", "view_fraction"):
+        assert 0 <= r[key] <= 1, key
+    assert "whole parts:" in out and "| **whole parts** |" in out and f"| {case['id']} | recolor_part |" in out
+    assert "gain >= +8 dB, every whole-part recolour" in out

@@ -327,6 +327,13 @@ def make_scene(seed: int = 0, n_object: int = 6000, n_background: int = 4000) ->
     return _to_model(a), a.labels.clone(), list(PART_NAMES)
 
 
+def part_masks(seed: int = 0, n_object: int = 6000, n_background: int = 4000) -> Dict[str, torch.Tensor]:
+    """The named parts of `make_scene(seed, ...)`: part name -> (N,) bool mask of its Gaussians,
+    every name of PART_NAMES (both eyes are `eyes`, both arms `arms`)."""
+    _, labels, names = make_scene(seed, n_object, n_background)
+    return {name: labels == i for i, name in enumerate(names)}
+
+
 def look_at(center, target, width: int, height: int, fov_deg: float = CAMERA_FOV, name: str = "",
             up=(0.0, 1.0, 0.0)) -> Camera:
     """An OpenCV-convention camera at `center` looking at `target`, with `up` (world +y by default)

@@ -7,13 +7,16 @@ around the splat, and builds a known edit from the splat itself, as a `GroundTru
   recolor  a part picked by a spatial rule is recoloured to `color` (its shading kept as a
            luminance factor; view-dependent SH of the part dropped); geometry unchanged.
            Rules (`select`): `top`, the upper `top_fraction` of the object along `up` (the icing
-           side of a donut); `ball`, the Gaussians within `ball_radius` of `anchor`.
+           side of a donut); `ball`, the Gaussians within `ball_radius` of `anchor`; `file`, the
+           Gaussians a saved mask names (`region_file`: a whole part, e.g. a `segment_parts`
+           segment or a named part of the procedural scene).
            `related`: what lies just outside the part (the band below it / a shell around it).
   add      a new compact object (a "cherry": a sphere of `add_count` small, opaque, flat Gaussians
            of one colour, shaded from above) resting on the surface seen from `up` at `anchor`.
            `region` = the splat's Gaussians within `region_radius` sphere radii of it (the part
            it sits on, what an editor's mask selects); `new_region` = those and the new rows.
-           `related`: the shell out to twice that radius.
+           `related`: the shell out to twice that radius. With `region_file` the region is
+           the part the file names instead (the whole part the object rests on).
 
 Positions (`anchor`, radii, the orbit radius) are in units of the OBJECT RADIUS from the OBJECT
 CENTRE: half the diagonal and the middle of the box spanned by the 2%-98% quantiles of the
@@ -36,14 +39,14 @@ from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.loaders import load_cameras
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.geometry.neighbors import quantile_box
+from gs_regional.geometry.neighbors import knn, quantile_box
 from gs_regional.registry import register
 from gs_regional.sim.scene import _cov_to_gaussian, _Ellipsoid, _sample_ellipsoid, look_at
 from gs_regional.sim.truth import GroundTruth
 from gs_regional.utils.sh import rgb_to_sh, sh_to_rgb
 
 EDIT_NAMES = ("recolor", "add")
-SELECT_RULES = ("top", "ball")
+SELECT_RULES = ("top", "ball", "file")
 OPAQUE = 0.5  # Gaussians above this opacity define the object's extent and its surface
 _LUMA = (0.299, 0.587, 0.114)
 
@@ -123,6 +126,148 @@ def select_ball(model: GaussianModel, center: torch.Tensor, radius: float) -> Tu
     """(region, related): Gaussians within `radius` of `center`, and the shell out to twice it."""
     dist = (model.means.detach() - center).norm(dim=-1)
     return dist <= radius, (dist > radius) & (dist <= 2 * radius)
+
+
+def load_region(path: str, n: int) -> torch.Tensor:
+    """The (n,) bool mask saved at `path` (torch.save of a bool mask or of row indices)."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"data.region_file does not exist: {path}")
+    m = torch.as_tensor(torch.load(path, map_location="cpu"))
+    if m.dtype == torch.bool:
+        if m.shape != (n,):
+            raise ConfigError(f"data.region_file {path}: a mask of {tuple(m.shape)} rows for a splat of {n}")
+        return m.clone()
+    region = torch.zeros(n, dtype=torch.bool)
+    region[m.long()] = True
+    return region
+
+
+def select_file(model: GaussianModel, path: str) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(region, related): the part saved at `path`, and the Gaussians around it within half the
+    part's own radius of its centre's reach (its neighbours, as an editor's spill lights them)."""
+    region = load_region(path, len(model))
+    means = model.means.detach()
+    if not bool(region.any()):
+        return region, torch.zeros_like(region)
+    c = means[region].mean(0)
+    reach = float((means[region] - c).norm(dim=-1).max())
+    return region, ((means - c).norm(dim=-1) <= 1.5 * reach) & ~region
+
+
+# ------------------------------------------------------------------------------------- whole parts
+def connected_components(n: int, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+    """(n,) component label of each node of the undirected graph with edges (src, dst): the
+    smallest node id of its component. Union-find as array rounds: every edge hooks the larger of
+    its two roots onto the smaller (scatter-min on the roots), then pointer jumping flattens the
+    trees; O(E) per round, about log(n) rounds, no Python loop over nodes or edges."""
+    labels = torch.arange(n)
+    if src.numel() == 0:
+        return labels
+    while True:
+        a, b = labels[src], labels[dst]
+        m = torch.minimum(a, b)
+        new = labels.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+        while True:  # pointer jumping: a node's label is a node of its component with a smaller id
+            jumped = new[new]
+            if torch.equal(jumped, new):
+                break
+            new = jumped
+        if torch.equal(new, labels):
+            return labels
+        labels = new
+
+
+def _colour_classes(rgb: torch.Tensor, n_classes: int, iters: int = 20) -> torch.Tensor:
+    """(N,) class of each colour: k-means in RGB, started from colours spread along the luma
+    order (deterministic)."""
+    luma = rgb @ torch.tensor(_LUMA)
+    order = torch.argsort(luma, stable=True)
+    k = min(n_classes, len(rgb))
+    centres = rgb[order[((torch.arange(k) + 0.5) / k * len(rgb)).long()]].clone()
+    cls = torch.zeros(len(rgb), dtype=torch.long)
+    for _ in range(iters):
+        d = (rgb[:, None, :] - centres[None]).pow(2).sum(-1)  # (N, k): k is a handful
+        cls = d.argmin(1)
+        sums = torch.zeros_like(centres).index_add_(0, cls, rgb)
+        counts = torch.bincount(cls, minlength=k).clamp_min(1)[:, None].float()
+        centres = torch.where(counts > 0, sums / counts, centres)
+    return cls
+
+
+def segment_parts(model: GaussianModel, k: int = 8, n_colours: int = 5, smooth: int = 2, reach: float = 6.0,
+                  colour_tol: float = 0.15, min_opacity: float = 0.1) -> torch.Tensor:
+    """Parts of a splat found from the splat itself: connected regions of similar colour and
+    position. (N,) long label per Gaussian, 0 for the largest segment, 1 the next, ...; -1 for
+    Gaussians below `min_opacity` (no part).
+
+    Each Gaussian's base colour (SH DC as RGB) is averaged with those of its `k` nearest
+    neighbours within `colour_tol` of it (`smooth` rounds: a trained splat's per-Gaussian colour
+    noise is not a boundary, a change of colour larger than the tolerance is) and quantised
+    into `n_colours` classes (k-means); edges join each Gaussian to those of its `k` nearest
+    neighbours (geometry.neighbors.knn: exact, no all-pairs matrix) of the same class within
+    `reach` times the median nearest-neighbour distance; a segment is a connected component of
+    that graph (`connected_components`)."""
+    n = len(model)
+    keep = model.opacities.detach() >= min_opacity
+    idx = torch.nonzero(keep).flatten()
+    labels = torch.full((n,), -1, dtype=torch.long)
+    if len(idx) < 2:
+        labels[idx] = 0
+        return labels
+    means = model.means.detach().float()[idx]
+    rgb = sh_to_rgb(model.sh_dc.detach().float()[idx]).clamp(0, 1)
+    d2, nb = knn(means, k)
+    for _ in range(smooth):  # bilateral: only neighbours of a similar colour, so boundaries stay sharp
+        w = ((rgb[nb] - rgb[:, None]).norm(dim=-1) <= colour_tol).float()[..., None]
+        rgb = (rgb + (rgb[nb] * w).sum(1)) / (1 + w.sum(1))
+    cls = _colour_classes(rgb, n_colours)
+    kk = nb.shape[1]
+    spacing = float(d2[:, 0].clamp_min(0).sqrt().median())
+    src = torch.arange(len(idx)).repeat_interleave(kk)
+    dst = nb.flatten()
+    ok = (d2.flatten().clamp_min(0).sqrt() <= reach * max(spacing, 1e-12)) & (cls[src] == cls[dst])
+    comp = connected_components(len(idx), src[ok], dst[ok])
+    _, inverse, counts = torch.unique(comp, return_inverse=True, return_counts=True)
+    order = torch.argsort(-counts, stable=True)  # largest first
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order))
+    labels[idx] = rank[inverse]
+    return labels
+
+
+def part_visibility(model: GaussianModel, region: torch.Tensor, cameras: Sequence[Camera], up: torch.Tensor,
+                    side_elevation: float = 20.0) -> dict:
+    """How the cameras see a part (`region`):
+    - `views_seeing`: the cameras where the part covers at least one pixel's worth of weight;
+    - `side_view_fraction`: of those, the fraction whose elevation over the part's centre (along
+      `up`) is below `side_elevation` degrees: they see it from the side or from below;
+    - `hidden_fraction`: 1 - the part's rendered weight in the whole scene / its alpha rendered
+      alone, over all cameras: how much of it other Gaussians hide;
+    - `view_fraction`: the median, over the cameras that see it, of the fraction of the image the
+      part covers in the scene (weight summed over pixels / pixels)."""
+    from gs_regional.registry import find
+
+    renderer = find("torch-rasterizer", kind="renderers")()
+    part_only = model.select(region)
+    feature = region.float()[:, None]
+    ones = torch.ones(len(part_only), 1)
+    centre = model.means.detach()[region].mean(0)
+    seen_w, alone_w, side, fractions = 0.0, 0.0, [], []
+    with torch.no_grad():
+        for cam in cameras:
+            w = float(renderer.render(model, cam, override_color=feature)["rgb"].sum())
+            a = float(renderer.render(part_only, cam, override_color=ones)["rgb"].sum())
+            seen_w, alone_w = seen_w + w, alone_w + a
+            if w >= 1.0:
+                d = cam.center.float() - centre
+                elev = math.degrees(math.asin(max(-1.0, min(1.0, float(d @ up) / max(float(d.norm()), 1e-12)))))
+                side.append(elev < side_elevation)
+                fractions.append(w / (cam.width * cam.height))
+    fractions.sort()
+    return {"views_seeing": len(side), "views": len(cameras),
+            "side_view_fraction": round(sum(side) / len(side), 3) if side else None,
+            "hidden_fraction": round(1.0 - seen_w / alone_w, 3) if alone_w > 0 else None,
+            "view_fraction": round(fractions[len(fractions) // 2], 4) if fractions else None}
 
 
 # ------------------------------------------------------------------------------------------ edits
@@ -227,7 +372,8 @@ class SplatTruthDataModule(SceneDataModuleBase):
         fov: float = 45.0  # orbit, degrees
         # The edit (positions and sizes in object radii from the object centre).
         color: Optional[List[float]] = None  # new colour (recolor) / the new object's colour (add); None = default
-        select: str = "top"  # recolor: top | ball
+        select: str = "top"  # recolor: top | ball | file
+        region_file: str = ""  # recolor `file` / add: a saved mask of the part (torch.save; bool or indices)
         top_fraction: float = 0.5  # recolor top: upper fraction of the object's height
         ball_radius: float = 0.35  # recolor ball
         anchor: List[float] = field(default_factory=lambda: [0.62, 0.0, 0.0])  # ball centre / where the add sits
@@ -248,6 +394,8 @@ class SplatTruthDataModule(SceneDataModuleBase):
             raise ConfigError(f"data.edit: unknown splat edit '{c.edit}'; known: {', '.join(EDIT_NAMES)}")
         if c.select not in SELECT_RULES:
             raise ConfigError(f"data.select: unknown rule '{c.select}'; known: {', '.join(SELECT_RULES)}")
+        if c.select == "file" and c.edit == "recolor" and not c.region_file:
+            raise ConfigError("data.select=file needs data.region_file (a saved mask of the part)")
         if c.cameras and not os.path.exists(c.cameras):
             raise ConfigError(f"data.cameras does not exist: {c.cameras}")
         if c.downscale <= 0:
@@ -274,6 +422,8 @@ class SplatTruthDataModule(SceneDataModuleBase):
         if c.edit == "recolor":
             if c.select == "top":
                 region, related = select_top(source, up, c.top_fraction)
+            elif c.select == "file":
+                region, related = select_file(source, c.region_file)
             else:
                 region, related = select_ball(source, anchor, c.ball_radius * radius)
             if not bool(region.any()):
@@ -285,6 +435,8 @@ class SplatTruthDataModule(SceneDataModuleBase):
             sphere_center = top + (1 - c.add_sink) * r * up
             added = sphere_gaussians(sphere_center, r, c.add_count, color, up, c.seed, source.sh_degree)
             region, related = select_ball(source, sphere_center, c.region_radius * r)
+            if c.region_file:  # the whole part the object rests on
+                region, related = select_file(source, c.region_file)
             edited, new_region = with_added(source, added, region)
         front = _unit(c.front, "data.front") if c.front is not None else up
         return GroundTruth(

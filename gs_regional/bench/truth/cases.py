@@ -6,7 +6,7 @@ import colorsys
 import math
 import os
 import random
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 from gs_regional.bench import sweeps
 from gs_regional.bench.launching import SHARED_DATA
@@ -15,6 +15,13 @@ FACE = os.path.join(SHARED_DATA, "face")
 JSON_NAME, PNG_NAME = "truth_suite.json", "truth_suite.png"
 
 KINDS = ("recolor_small", "recolor_large", "add_small", "add_large")
+# Whole-part cases (--parts K), drawn after the KINDS cases from a stream of their own.
+PART_KINDS = ("recolor_part", "add_part")
+# The procedural scene's named parts (gs_regional.sim.scene.PART_NAMES) a whole-part case picks
+# from: every part is recoloured; objects rest on the parts with a top to rest on.
+SYNTHETIC_PARTS = {"recolor_part": ("body", "head", "nose", "eyes", "arms", "ground", "backdrop"),
+                   "add_part": ("body", "head", "nose", "arms", "ground")}
+PART_SCENE_SHARES = (("synthetic", 0.5), ("donut", 0.25), ("face", 0.25))  # of the whole-part cases
 N_SYNTHETIC_SEEDS = 6  # scene seeds of the synthetic scene drawn per run (>= 5)
 NATIVE_SHARE = 0.25  # synthetic large recolours / larger additions drawn as the scene's own edits
 
@@ -104,10 +111,58 @@ def _scene_slots(rng: random.Random, n: int, quick: bool) -> List[Tuple[str, str
     return slots
 
 
-def draw(seed: int, n_cases: int = 24, quick: bool = False) -> List[dict]:
-    """The cases of one suite: pure function of (seed, n_cases, quick), no data read. Each case is
-    a dict: id, scene, kind, native (the synthetic scene's own edit), run seed, colour and the
-    drawn sizes and anchors (in subject radii; resolved against the splat when it runs)."""
+def draw(seed: int, n_cases: int = 24, quick: bool = False, parts: int = 0) -> List[dict]:
+    """The cases of one suite: pure function of (seed, n_cases, quick, parts), no data read. Each
+    case is a dict: id, scene, kind, native (the synthetic scene's own edit), run seed, colour and
+    the drawn sizes and anchors (in subject radii; resolved against the splat when it runs).
+    `parts` whole-part cases follow the n_cases (`draw_parts`); the first n_cases do not depend
+    on it."""
+    cases = _draw_kinds(seed, n_cases, quick)
+    return cases + draw_parts(seed, parts, quick, first=len(cases) + 1, synthetic_seeds=[
+        int(c["scene"].split(":")[1]) for c in cases if c["scene"].startswith("synthetic:")])
+
+
+def draw_parts(seed: int, n: int, quick: bool = False, first: int = 25, synthetic_seeds: Sequence[int] = ()) -> List[dict]:
+    """`n` whole-part cases (ids c<first>...), from a random stream of their own (seeded by
+    "<seed>:parts", so the suite's other cases stay as drawn): kinds alternating recolour / add
+    from a random start; scenes synthetic (half; the draw's own scene seeds when given), donut and
+    face (a quarter each; synthetic only when quick). A synthetic case names one of the
+    procedural scene's parts (SYNTHETIC_PARTS); a donut or face case draws `part_size`, a
+    quantile in [0, 1] of the log of the segments' sizes (resolved against `segment_parts` of the
+    splat: from the smallest segment kept to the largest)."""
+    if n <= 0:
+        return []
+    rng = random.Random(f"{int(seed)}:parts")
+    seeds = list(dict.fromkeys(synthetic_seeds)) or rng.sample(range(100_000), N_SYNTHETIC_SEEDS)
+    start = rng.randrange(len(PART_KINDS))
+    cases = []
+    for i in range(n):
+        kind = PART_KINDS[(start + i) % len(PART_KINDS)]
+        u = rng.random()
+        family = "synthetic" if quick else next(f for f, acc in _cumulative(PART_SCENE_SHARES) if u < acc)
+        scene = f"synthetic:{rng.choice(seeds)}" if family == "synthetic" else family
+        rgb, colour = _colour(rng)
+        case = {"id": f"c{first + i:02d}", "scene": scene, "kind": kind, "run_seed": rng.randrange(100_000),
+                "color": rgb, "color_name": colour, "native": False, "select": "part"}
+        if family == "synthetic":
+            case["part"] = rng.choice(SYNTHETIC_PARTS[kind])
+        else:
+            case["part_size"] = round(rng.random(), 4)
+        if kind == "add_part":
+            case.update(add_radius=round(rng.uniform(0.06, 0.25), 4), add_count=rng.randint(100, 600))
+        cases.append(case)
+    return cases
+
+
+def _cumulative(shares):
+    acc = 0.0
+    for name, share in shares:
+        acc += share
+        yield name, acc if name != shares[-1][0] else 1.0
+
+
+def _draw_kinds(seed: int, n_cases: int, quick: bool) -> List[dict]:
+    """The n_cases cases of KINDS (the suite's first cases)."""
     rng = random.Random(int(seed))
     cases = []
     for i, (scene, kind) in enumerate(_scene_slots(rng, n_cases, quick)):

@@ -1,6 +1,6 @@
 """A truth suite that cannot be memorized: known edits drawn at random from a seed it prints.
 
-    python scripts/truth_suite.py [--seed N] [--cases 24] [--quick] [--out outputs/truth_suite] [key=value ...]
+    python scripts/truth_suite.py [--seed N] [--cases 24] [--parts K] [--quick] [--out outputs/truth_suite] [key=value ...]
     make truth-suite [SEED=N]
 
 Each run draws `--cases` (default 24) known edits from a fresh random seed, printed first (`--seed N`
@@ -32,6 +32,18 @@ the part the object sits on) is the splat's Gaussians within 1.2-8 sphere radii 
 widened by 1.25x steps while it holds fewer Gaussians than the object, as where a ball barely
 touches a sparse surface), so from about the object's own size up to tens of times its Gaussian
 count (`region_to_added` in each record). Colours, anchors and run seeds are random too; the prompt names the part.
+
+Whole parts (--parts K, opt-in: K cases c25... after the 24, from a random stream of their own, so that
+the 24 are drawn as without it; kinds alternate):
+  recolor_part   a whole part recoloured ("make the <part> <colour>")
+  add_part       a sphere of radius 0.06-0.25 (100-600 Gaussians) resting on a whole part, the part its region
+On a synthetic scene (half of them) the part is one of the figure's named parts (body, head, nose, eyes,
+arms) or the ground or the backdrop (sim.scene.part_masks); on the donut and the face (a quarter each) a
+segment of the splat (sim.splat_truth.segment_parts: connected regions of similar colour and position), of
+a size drawn log-uniformly between the smallest (30 Gaussians) and the largest segment, among those the
+cameras see (less than 90 % hidden). Each record holds part_gaussians, side_view_fraction (of the views
+seeing the part, those under 20 degrees over its centre), hidden_fraction and view_fraction; the report
+lists these cases apart ("whole parts") and holds every whole-part recolour to >= +8 dB.
 
 Per case it records the footprint PSNR against the truth and what doing nothing scores there
 (gain = the difference), the PSNR outside the footprint, of the unedited region, mask IoU,
@@ -83,6 +95,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=None, help="the draw's seed (default: a fresh one, printed)")
     ap.add_argument("--cases", type=int, default=None, help="cases to draw (default 24; 3 with --quick)")
+    ap.add_argument("--parts", type=int, default=0, metavar="K",
+                    help="also draw K whole-part cases after the others (c25...; their own random stream: the "
+                         "first cases stay as drawn without it)")
     ap.add_argument("--quick", action="store_true", help="3 cases on synthetic scenes at tiny budgets (the test's mode)")
     ap.add_argument("--out", default=None,
                     help=f"folder for {JSON_NAME}, {PNG_NAME}, the scenes, the face fit and the runs (default "
@@ -121,20 +136,20 @@ def main(argv=None) -> int:
     else:
         seed = args.seed if args.seed is not None else random.SystemRandom().randrange(1_000_000)
         n = args.cases or (3 if args.quick else 24)
-        print(f"truth suite seed: {seed} ({n} cases{', quick' if args.quick else ''}; "
-              f"rerun this draw with --seed {seed})", flush=True)
+        print(f"truth suite seed: {seed} ({n} cases{f' + {args.parts} whole parts' if args.parts else ''}"
+              f"{', quick' if args.quick else ''}; rerun this draw with --seed {seed})", flush=True)
         if args.draw_only:
-            for c in draw(seed, n, args.quick):
+            for c in draw(seed, n, args.quick, args.parts):
                 print(json.dumps(c))
             return 0
         import torch
 
         if args.resolve_only:
-            return resolve_only(seed, n, args.quick, args.out, args.size)
+            return resolve_only(seed, n, args.quick, args.out, args.size, args.parts, only)
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         torch.set_num_threads(max(1, min(args.threads or cores, cores)))
         overrides = list(args.overrides) + ([LOCALIZE_ONLY] if args.localize_only else [])
-        payload = run_suite(seed, n, args.quick, args.out, overrides, only, kinds, args.size, args.repeats)
+        payload = run_suite(seed, n, args.quick, args.out, overrides, only, kinds, args.size, args.repeats, args.parts)
     chart(payload, os.path.join(args.out, PNG_NAME))
     result = print_report(payload)
     if args.compare:

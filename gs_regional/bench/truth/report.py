@@ -6,7 +6,7 @@ import statistics
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from gs_regional.bench import sweeps
-from gs_regional.bench.truth.cases import KINDS, gain, spread
+from gs_regional.bench.truth.cases import KINDS, PART_KINDS, gain, spread
 
 def _ratio_added(r: dict) -> Optional[float]:
     if r.get("gaussians_added") is None:
@@ -38,10 +38,19 @@ def targets(records: Sequence[dict]) -> List[Tuple[str, Optional[bool], str, Lis
 
     g = lambda r: r["gain"] if r.get("gain") is not None else float("-inf")  # noqa: E731
     recolours = [r for r in ok if r["kind"].startswith("recolor")]
+    part_recolours = [r for r in records if r["kind"] == "recolor_part"]
+
+    def whole_part_recolours(name, limit):  # None when the run holds no whole-part recolour
+        if not part_recolours:
+            return (name, None, "no such case", [])
+        bad = [r["id"] for r in part_recolours if r.get("error") or g(r) < limit]
+        return (name, not bad, f"{len(part_recolours) - len(bad)}/{len(part_recolours)} cases", bad)
+
     return [
         per_case("gain > 0 dB, every case", lambda r: g(r) > 0),
         median_of("median gain >= +6 dB", [r["gain"] for r in ok], 6.0),
         median_of("median gain of the recolours >= +10 dB", [r["gain"] for r in recolours], 10.0),
+        whole_part_recolours("gain >= +8 dB, every whole-part recolour", 8.0),
         per_case("outside-footprint PSNR >= 45 dB, every case", lambda r: (r["psnr_outside_vs_true_edit"] or 0) >= 45),
         median_of("median outside-footprint PSNR >= 50 dB", [r["psnr_outside_vs_true_edit"] for r in ok], 50.0),
         per_case("unedited PSNR >= 50 dB, every case", lambda r: (r["psnr_unedited"] or 0) >= 50),
@@ -83,6 +92,23 @@ def seed_spreads(records: Sequence[dict]) -> Dict[str, List[float]]:
     return out
 
 
+# The whole-part cases' own figures: the part and how the cameras see it.
+PART_DISTRIBUTION = (
+    ("part size (Gaussians)", lambda r: r.get("part_gaussians")),
+    ("views seeing it from the side or below", lambda r: r.get("side_view_fraction")),
+    ("part hidden by others (fraction)", lambda r: r.get("hidden_fraction")),
+    ("part's share of the image", lambda r: r.get("view_fraction")),
+)
+
+
+def _distribution_rows(records: Sequence[dict], rows) -> None:
+    for name, f in rows:
+        vals = [f(r) for r in records if not r.get("error")]
+        vals = [float(v) for v in vals if v is not None]
+        if vals:
+            print(f"| {name} | {len(vals)} | {min(vals):.3g} | {statistics.median(vals):.3g} | {max(vals):.3g} |")
+
+
 def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
     records = payload["records"]
     print(f"\ntruth suite: seed {payload['seed']} ({len(records)} cases"
@@ -103,13 +129,23 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
               f"{rng('psnr_outside_vs_true_edit')} | "
               f"{sweeps.fmt(r['psnr_unedited'])} | {sweeps.fmt(r['mask_iou'])} | {r['gaussians_added']} ({truth}) | "
               f"{sweeps.fmt(r.get('wall_seconds'))} |")
+    parts = [r for r in records if r["kind"] in PART_KINDS]
+    drawn = [r for r in records if r["kind"] not in PART_KINDS]
+    if parts:
+        print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
+              "| outside dB | IoU |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        for r in parts:
+            print(f"| {r['id']} | {r['kind']} | {r['scene']} | {r.get('part_key', r.get('part'))} | {r.get('part_gaussians')} | "
+                  f"{sweeps.fmt(r.get('side_view_fraction'))} | {sweeps.fmt(r.get('hidden_fraction'))} | "
+                  f"{sweeps.fmt(r.get('view_fraction'))} | {sweeps.fmt(r.get('gain'))} | "
+                  f"{sweeps.fmt(r.get('psnr_outside_vs_true_edit'))} | {sweeps.fmt(r.get('mask_iou'))} |")
     print("\n| metric | n | min | median | max |")
     print("| --- | --- | --- | --- | --- |")
-    for name, f in DISTRIBUTION:
-        vals = [f(r) for r in records if not r.get("error")]
-        vals = [float(v) for v in vals if v is not None]
-        if vals:
-            print(f"| {name} | {len(vals)} | {min(vals):.3g} | {statistics.median(vals):.3g} | {max(vals):.3g} |")
+    _distribution_rows(drawn, DISTRIBUTION)
+    if parts:  # the whole-part cases apart
+        print("| **whole parts** | | | | |")
+        _distribution_rows(parts, DISTRIBUTION + PART_DISTRIBUTION)
     spreads = seed_spreads(records)
     if spreads:
         print(f"\n{payload.get('repeats')} runs a case (run seeds +0..+{payload.get('repeats', 1) - 1}): each figure above is "
@@ -127,7 +163,7 @@ def chart(payload: dict, path: str) -> None:
     """Per-case gain and outside-footprint PSNR, each sorted, coloured by kind, targets drawn."""
     plt = sweeps.pyplot()
     records = [r for r in payload["records"] if not r.get("error")]
-    colors = dict(zip(KINDS, ("tab:orange", "tab:red", "tab:blue", "tab:purple")))
+    colors = dict(zip(KINDS + PART_KINDS, ("tab:orange", "tab:red", "tab:blue", "tab:purple", "tab:brown", "tab:cyan")))
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
     panels = ((axes[0], "gain", "gain in the footprint vs doing nothing (dB)",
                ((0.0, "every case > 0"), (6.0, "median >= +6"), (10.0, "median of the recolours >= +10"))),

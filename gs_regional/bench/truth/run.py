@@ -65,10 +65,11 @@ def run_case(case: dict, subject: Optional[Subject], s: dict, runs_dir: str, rep
     return rec
 
 
-def resolve_only(seed: int, n_cases: int, quick: bool, out: str, size: Optional[int] = None) -> int:
-    """Place every drawn case on its scene and print what would run."""
+def resolve_only(seed: int, n_cases: int, quick: bool, out: str, size: Optional[int] = None, parts: int = 0,
+                 only: Sequence[str] = ()) -> int:
+    """Place every drawn case (those named in `only`, when given) on its scene and print what would run."""
     s = settings(quick, size)
-    cases = draw(seed, n_cases, quick)
+    cases = select_cases(draw(seed, n_cases, quick, parts), only, (), seed)
     subjects, missing = subjects_for(cases, out, s)
     for why in missing:
         print(f"LEFT OUT: {why}")
@@ -95,12 +96,12 @@ def select_cases(cases: Sequence[dict], only: Sequence[str] = (), kinds: Sequenc
 
 def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequence[str] = (),
               only: Sequence[str] = (), kinds: Sequence[str] = (), size: Optional[int] = None,
-              repeats: int = 1) -> dict:
-    """Run the draw's cases (those named in `only`, of the `kinds` given, when given) and write
-    the JSON after each."""
+              repeats: int = 1, parts: int = 0) -> dict:
+    """Run the draw's cases (those named in `only`, of the `kinds` given, when given; `parts`
+    whole-part cases after the n_cases) and write the JSON after each."""
     s = settings(quick, size)
     s["budget"] = s["budget"] + list(overrides)  # every case's launch.py overrides
-    cases = select_cases(draw(seed, n_cases, quick), only, kinds, seed)
+    cases = select_cases(draw(seed, n_cases, quick, parts), only, kinds, seed)
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
     subjects, missing = subjects_for(cases, out, s)
@@ -110,7 +111,7 @@ def run_suite(seed: int, n_cases: int, quick: bool, out: str, overrides: Sequenc
             print(f"!! LEFT OUT: {why}: its cases do not run (set GS_REGIONAL_DATA to the folder holding "
                   "donut/ and face/)")
         print("!" * 100 + "\n", flush=True)
-    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "only": list(only), "kinds": list(kinds), "repeats": repeats,
+    payload = {"seed": seed, "quick": quick, "n_cases": n_cases, "parts": parts, "only": list(only), "kinds": list(kinds), "repeats": repeats,
                "settings": {**s, "common": COMMON},
                "shared_data": SHARED_DATA, "left_out": missing, "records": []}
     runs_dir = os.path.join(out, "runs")

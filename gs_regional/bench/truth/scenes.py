@@ -44,6 +44,28 @@ class Subject:
         # splat-truth's `up` of an addition: the object rests on the surface seen from it
         self.add_up = self.front if add_on_front else self.up
         self.obj_center, self.obj_radius = object_frame(self.model)
+        # where whole-part cases save their part's mask (splat-truth's `region_file`); subjects_for
+        # sets it under the suite's OUT
+        self.parts_dir = os.path.join(ROOT, "outputs", "truth_suite", "scenes", name.replace(":", "_"), "parts")
+        self._segments = None
+        self._cameras = None
+
+    def camera_list(self):
+        """The cameras a case on this subject renders (splat-truth's, from `cameras`; computed once)."""
+        if self._cameras is None:
+            from gs_regional.sim.splat_truth import SplatTruthDataModule
+
+            dm = SplatTruthDataModule({"ply": self.ply, **self.cameras})
+            self._cameras = dm.cameras(self.obj_center, self.obj_radius, self.up)
+        return self._cameras
+
+    def segments(self):
+        """segment_parts of the splat (computed once): (N,) segment per Gaussian, 0 the largest."""
+        if self._segments is None:
+            from gs_regional.sim.splat_truth import segment_parts
+
+            self._segments = segment_parts(self.model)
+        return self._segments
 
     def to_object(self, p) -> List[float]:
         """A world point as splat-truth's `anchor` (object radii from the object centre)."""
@@ -220,21 +242,30 @@ def _landing(subject: Subject, through, direction, width: float):
     return p if subject.on_subject(p) else None
 
 
-def _truth_stats(data: Dict[str, object]) -> Tuple[dict, object]:
+def _truth_stats(data: Dict[str, object], visibility=None) -> Tuple[dict, object]:
     """Build the case's truth as the run will (SplatTruthDataModule): (region and added counts,
-    the region mask)."""
-    from gs_regional.sim.splat_truth import SplatTruthDataModule
+    the region mask); with `visibility` (the subject's up) also how the case's cameras see the region
+    (splat_truth.part_visibility: side_view_fraction, hidden_fraction, view_fraction, views_seeing)."""
+    from gs_regional.sim.splat_truth import SplatTruthDataModule, part_visibility
 
     dm = SplatTruthDataModule(data)
     dm.setup()
     gt = dm.scene.ground_truth
     region, added = int(gt.region.sum()), len(gt.edited) - len(gt.source)
-    return {"region_gaussians": region, "true_added": added,
-            "region_to_added": round(region / added, 2) if added else None}, gt.region
+    stats = {"region_gaussians": region, "true_added": added,
+             "region_to_added": round(region / added, 2) if added else None}
+    if visibility is not None:
+        stats["part_gaussians"] = region
+        stats.update(part_visibility(gt.source, gt.region, dm.scene.cameras, visibility))
+    return stats, gt.region
 
 
 def _prompt(case: dict, part: str) -> str:
     c, kind = case["color_name"], case["kind"]
+    if kind == "recolor_part":
+        return f"make the {part} {c}"
+    if kind == "add_part":
+        return f"put a {'small' if case['add_radius'] < 0.12 else 'big'} {c} ball on the {part}"
     if kind == "recolor_small":
         return f"paint {'an' if c[0] in 'aeiou' else 'a'} {c} patch on the {part}"
     if kind == "recolor_large":
@@ -242,9 +273,120 @@ def _prompt(case: dict, part: str) -> str:
     return f"put a {'small' if kind == 'add_small' else 'big'} {c} ball on the {part}"
 
 
+MIN_PART = 30  # a segment of a real splat with fewer Gaussians is no part a case picks
+MAX_PART_SHARE = 0.9  # nor one holding more than this share of the splat
+
+
+MAX_HIDDEN = 0.9  # a real splat's segment more hidden than this (inside the object) is no part a case picks
+PART_TRIES = 20  # segments tried, nearest the drawn size first, before a real splat's case fails
+
+
+def part_region(case: dict, subject: Subject, accept=None):
+    """(mask of the whole part, the word the prompt calls it, a key naming it, its visibility or
+    None): a named part of the procedural scene (sim.scene.part_masks), or the segment of a real
+    splat (segment_parts) whose size is nearest the case's `part_size` quantile of the log sizes
+    of its segments (MIN_PART Gaussians up to MAX_PART_SHARE of the splat) among those the cameras
+    see (hidden_fraction <= MAX_HIDDEN) and `accept(mask)` takes."""
+    import torch
+
+    from gs_regional.sim.splat_truth import part_visibility
+
+    if subject.labels is not None:
+        from gs_regional.sim.scene import part_masks
+
+        region = part_masks(int(subject.name.split(":")[1]))[case["part"]]
+        return region, case["part"], case["part"], None
+    seg = subject.segments()
+    counts = torch.bincount(seg[seg >= 0])
+    eligible = torch.nonzero((counts >= MIN_PART) & (counts <= MAX_PART_SHARE * len(seg))).flatten()
+    if not len(eligible):
+        raise ValueError(f"{subject.name}: no segment of {MIN_PART} or more Gaussians")
+    sizes = counts[eligible].float().log()
+    target = sizes.min() + case["part_size"] * (sizes.max() - sizes.min())
+    for j in eligible[torch.argsort((sizes - target).abs(), stable=True)][:PART_TRIES].tolist():
+        region = seg == j
+        seen = part_visibility(subject.model, region, subject.camera_list()[::3], subject.up)  # a third of the views
+        if (seen["hidden_fraction"] or 1.0) > MAX_HIDDEN or (accept is not None and not accept(region)):
+            continue
+        return region, subject.part_at(subject.model.means[region].mean(0)), f"segment{j}", seen
+    raise ValueError(f"{subject.name}: none of the {PART_TRIES} segments nearest the drawn size is seen "
+                     f"(hidden <= {MAX_HIDDEN}) and takes the case")
+
+
+_PART_CANDIDATES = 64  # an addition's resting point is looked for under this many of the part's tops
+
+
+def _part_anchor(subject: Subject, region, r: float):
+    """(through, landing point) of an object resting on the part seen from `add_up`: under the
+    part's Gaussians highest along it (nearest the subject's axis first among equals), the first
+    whose landing point's nearest Gaussian is the part's."""
+    import torch
+
+    from gs_regional.config import ConfigError
+    from gs_regional.sim.splat_truth import OPAQUE, surface_point
+
+    means = subject.model.means
+    up = subject.add_up
+    rows = torch.nonzero(region & (subject.model.opacities > OPAQUE)).flatten()
+    if not len(rows):
+        rows = torch.nonzero(region).flatten()
+    rel = means[rows] - subject.center
+    height = rel @ up
+    lateral = (rel - height[:, None] * up).norm(dim=-1)
+    for i in rows[torch.argsort(-(height - 0.3 * lateral))[:_PART_CANDIDATES]].tolist():
+        through = means[i]
+        try:
+            p = surface_point(subject.model, through, up, r)
+        except ConfigError:
+            continue
+        if bool(region[int((means - p).norm(dim=-1).argmin())]):
+            return through, p
+    raise ValueError(f"no point of the part is seen from above ({subject.name})")
+
+
+def _resolve_part(case: dict, subject: Subject) -> Tuple[str, List[str], dict]:
+    """A whole-part case: the part's mask saved for splat-truth (`region_file`); a recolour of
+    the whole part, or an object resting on it with the part as its region."""
+    import torch
+
+    r = case.get("add_radius", 0.0) * subject.radius
+
+    def restable(region) -> bool:  # an addition needs a point of the part seen from its `add_up`
+        try:
+            _part_anchor(subject, region, r)
+            return True
+        except ValueError:
+            return False
+
+    region, part, key, _ = part_region(case, subject, restable if case["kind"] == "add_part" else None)
+    os.makedirs(subject.parts_dir, exist_ok=True)
+    path = os.path.join(subject.parts_dir, f"{key}.pt")
+    torch.save(region.clone(), path)
+    data: Dict[str, object] = {"ply": subject.ply, "front": subject.front.tolist(), "seed": case["run_seed"],
+                               "color": case["color"], "region_file": path}
+    data.update(subject.cameras)
+    facts: dict = {"part_key": key}
+    if case["kind"] == "recolor_part":
+        data.update(edit="recolor", select="file", up=subject.up.tolist())
+    else:
+        through, p = _part_anchor(subject, region, r)
+        data.update(edit="add", up=subject.add_up.tolist(), anchor=subject.to_object(through),
+                    add_radius=round(r / subject.obj_radius, 5), add_count=case["add_count"])
+        facts["anchor_world"] = [round(float(v), 4) for v in p]
+    data["prompt"] = _prompt(case, part)
+    stats, _ = _truth_stats(data, visibility=subject.up)
+    facts.update(stats, part=part, prompt=data["prompt"])
+    overrides = ["data_type=splat-truth"]
+    for k, v in data.items():
+        overrides.append(f"data.{k}={json.dumps(v) if isinstance(v, (list, str)) else v}")
+    return "configs/donut_add.yaml", overrides, facts
+
+
 def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[str], dict]:
     """(config, overrides, facts) of a drawn case against its scene: anchors found on the subject,
     sizes in splat-truth's units, the truth's region and added counts."""
+    if case.get("select") == "part":
+        return _resolve_part(case, subject)
     if case["native"]:  # the synthetic scene's own edit (make_edit), rendered by synthetic-scene
         from gs_regional.sim.scene import make_edit
 
@@ -321,4 +463,6 @@ def subjects_for(cases: Sequence[dict], out: str, s: dict) -> Tuple[Dict[str, Su
                                                s["face_downscale"])
             except (SystemExit, Exception) as e:
                 missing.append(f"face: no fitted splat ({e})")
+    for scene, subject in subjects.items():
+        subject.parts_dir = os.path.join(out, "scenes", scene.replace(":", "_"), "parts")
     return subjects, missing
