@@ -138,6 +138,13 @@ def checkpoint_settings(cfg: Any) -> Dict[str, Any]:
 
 
 def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None) -> int:
+    """The run of `launch.py`'s parsed `args`; its exit code (0: mistakes raise, cli.py reports them)."""
+    run_trial(args, overrides, argv, custom_dir)
+    return 0
+
+
+def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None) -> Optional[Path]:
+    """run(), returning the trial dir (None in a process that follows rank 0): gs_regional.edit's way in."""
     started, started_at = time.perf_counter(), time.time()
     verbose = bool(args.verbose or args.debug)
     mode = run_mode(args)
@@ -215,13 +222,13 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
             else:
                 export(trainer, system, datamodule, resume)
     if follower is not None:
-        return 0
+        return None
     print_summary(RunInfo(
         trial=trial, mode=mode, config_path=args.config, system_type=cfg.system_type, data_type=cfg.data_type,
         resume=resume, steps=trainer.global_step if mode == "train" else None,
         setup_seconds=setup_seconds, wall_seconds=time.perf_counter() - started, started_at=started_at,
     ))
-    return 0
+    return trial
 
 
 def run_config(cfg: Any) -> Dict[str, Any]:

@@ -6,7 +6,7 @@ import copy
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -409,6 +409,10 @@ class EditSystemBase(GaussianSystem):
                 self.warn("export.region: the edit selected and added no Gaussians, so no region files were written")
         return {p.name: p.stat().st_size for p in paths}
 
+    def edit_mask_arrays(self) -> Dict[str, Any]:
+        """More arrays for save/edit_mask.npz (a system's own; none here)."""
+        return {}
+
     @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
         """edited.ply, before/after renders, a turntable video and metrics.json (rank 0 alone, with
@@ -421,7 +425,8 @@ class EditSystemBase(GaussianSystem):
         # Which rows of edited.ply the edit selected or added (the viewer highlights them).
         g = self.geometry
         np.savez_compressed(self.save_dir / "edit_mask.npz", mask=g.mask.cpu().numpy(),
-                            generation=g.generation.cpu().numpy(), source_index=g.source_index.cpu().numpy())
+                            generation=g.generation.cpu().numpy(), source_index=g.source_index.cpu().numpy(),
+                            **self.edit_mask_arrays())
         export_bytes = self.write_formats("edited")
         scene = self.scene
         views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]

@@ -48,6 +48,9 @@ class RegionalEdit(EditSystemBase):
         # "localize": localization runs, metrics.json gets its figures (mask_iou ... with a known
         # edit, view_agreement) and the run ends with the source written unchanged; null: the edit.
         stop_after: Optional[str] = None
+        # A selection made by the caller (gs_regional.edit(selection=...)): a .npy/.npz of one bool
+        # per source Gaussian, used in place of localization's lift; null: localization selects.
+        selection_file: Optional[str] = None
         localization: LocalizeConfig = field(default_factory=LocalizeConfig)
         init: InitConfig = field(default_factory=InitConfig)
         refine: RefineConfig = field(default_factory=RefineConfig)
@@ -77,6 +80,7 @@ class RegionalEdit(EditSystemBase):
             self.priors.start("depth_estimator", find(self.cfg.depth_type, kind="depth", key="system.depth_type"),
                               self.cfg.depth)
         self.state = EditState()
+        self.given_selection: Optional[torch.Tensor] = None  # system.selection_file, read by check_scene
         self.strategy: Optional[EditStrategy] = None  # chosen after initialization
 
     def check_settings(self) -> None:
@@ -94,6 +98,8 @@ class RegionalEdit(EditSystemBase):
         if self.cfg.ablation.localize_with_truth and self.scene.ground_truth is None:
             raise ConfigError("system.ablation.localize_with_truth=true needs a scene with a known edit (a ground truth: "
                               "data_type synthetic-scene or splat-truth)")
+        if self.cfg.selection_file:
+            self.given_selection = read_selection(self.cfg.selection_file, self.geometry.num_gaussians)
         n = len(self.scene.train_indices)
         if self.cfg.refine.m >= n - 1:
             log.warning("system.refine.m=%d: the scene has %d training views, so every cycle edits all of them",
@@ -129,7 +135,9 @@ class RegionalEdit(EditSystemBase):
         views = spread_subset(scene.train_indices, lc.max_views)
         s.localize_views, s.localize_metrics = views, {}
         loc, masks = None, None
-        if not cfg.ablation.localize or lc.gamma <= 0:
+        if self.given_selection is not None:  # the caller's selection: no relevance maps, no lift
+            selected = self.given_selection.to(self.device)
+        elif not cfg.ablation.localize or lc.gamma <= 0:
             selected = torch.ones(g.num_gaussians, dtype=torch.bool, device=self.device)
         else:
             images = torch.stack([self.source_renders[i] for i in views])
@@ -416,6 +424,11 @@ class RegionalEdit(EditSystemBase):
         self.counts["pruned"] = self.counts.get("pruned", 0) + n
         self.strategy.finish(self)
 
+    def edit_mask_arrays(self) -> Dict[str, Any]:
+        """save/edit_mask.npz also holds the selection over the source Gaussians (gs_regional.edit)."""
+        sel = self.state.source_selection
+        return {} if sel is None else {"source_selection": sel.cpu().numpy()}
+
     def on_train_end(self) -> None:
         s = self.state
         if s.phase == "done":
@@ -460,6 +473,32 @@ class RegionalEdit(EditSystemBase):
         self.state.to(self.device)
         if self.strategy is not None:
             self.strategy.to(self.device)
+
+
+def read_selection(path: str, n: int) -> torch.Tensor:
+    """system.selection_file: one bool per source Gaussian from a .npy, or from a .npz's
+    `selection` array (its only array otherwise); anything else is a one-line ConfigError."""
+    import numpy as np
+
+    try:
+        with open(path, "rb") as f:
+            data = np.load(f, allow_pickle=False)
+            if isinstance(data, np.lib.npyio.NpzFile):
+                names = list(data.files)
+                if "selection" not in names and len(names) != 1:
+                    raise ConfigError(f"system.selection_file {path}: a .npz needs a 'selection' array, it has {names}")
+                data = data["selection" if "selection" in names else names[0]]
+    except ConfigError:
+        raise
+    except Exception as e:
+        raise ConfigError(f"system.selection_file {path}: cannot be read ({type(e).__name__}: {e})") from None
+    data = np.asarray(data).reshape(-1) if np.ndim(data) == 2 and 1 in np.shape(data) else np.asarray(data)
+    if data.ndim != 1 or len(data) != n:
+        raise ConfigError(f"system.selection_file {path}: {data.size:,} entries (shape {tuple(data.shape)}), "
+                          f"but the scene has {n:,} Gaussians")
+    if data.dtype != bool and not np.isin(data, (0, 1)).all():
+        raise ConfigError(f"system.selection_file {path}: the selection must be bool (or 0/1), got {data.dtype}")
+    return torch.as_tensor(data.astype(bool))
 
 
 def _normalize(x: torch.Tensor) -> torch.Tensor:
