@@ -5,7 +5,7 @@ from typing import Optional
 
 import torch
 
-from gs_regional.edit.change import NOISE_SIGMAS, edit_blend, real_change
+from gs_regional.stages.change import NOISE_SIGMAS, edit_blend, real_change
 from gs_regional.geometry.neighbors import column_quantile
 from gs_regional.utils.image import dilate
 

@@ -21,8 +21,8 @@ from typing import Any, ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError, need
-from gs_regional.edit.change import NOISE_SIGMAS, edit_blend
-from gs_regional.edit.composite import (
+from gs_regional.stages.change import NOISE_SIGMAS, edit_blend
+from gs_regional.stages.composite import (
     ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured,
 )
 from gs_regional.geometry import rows
@@ -74,7 +74,7 @@ class RefineConfig:
         "next_frontal": "each later cycle's frontal view is the edited view with the most unedited neighbours; remove the key",
         **{key: "a recolour's colours start at the source's and train; remove the key"
            for key in ("recolour_from_edits", "recolour_start_min_blend")},
-        **{key: f"it is the constant {name} of gs_regional/edit/{module}.py now; remove the key"
+        **{key: f"it is the constant {name} of gs_regional/stages/{module}.py now; remove the key"
            for key, (name, module) in _CONSTANTS.items()},
     }
     # The values a removed key had to have for an older checkpoint to resume as the method now runs.

@@ -34,7 +34,7 @@ class LocalizeConfig:
     REMOVED_KEYS: ClassVar[Dict[str, str]] = {
         "reweight_iters": "the lift re-weights its views as the method does; system.ablation.plain_vote=true gives "
                           "the paper's vote (no re-weighting, no neighbour pooling); remove the key",
-        **{key: f"it is the constant {key.upper()} of gs_regional/edit/localize.py now; remove the key"
+        **{key: f"it is the constant {key.upper()} of gs_regional/stages/localize.py now; remove the key"
            for key in ("agreement_power", "edge_colour_ratio", "agreement_tolerance_px")},
     }
     # The values a removed key had to have for an older checkpoint to resume as the method now runs.
@@ -57,7 +57,7 @@ class LocalizeConfig:
     min_view_agreement: float = 0.3
     # The first full edit checked against the selection, without ground truth: the fraction of the
     # editor's change beyond its noise in that view within 2 px of the localized region
-    # (metrics.json `edit_coverage`; gs_regional/edit/first_view.py). Below this, most of what the
+    # (metrics.json `edit_coverage`; gs_regional/stages/first_view.py). Below this, most of what the
     # editor changes is not what localization selected, and the run stops with the source written
     # unchanged. 0 never stops.
     min_edit_coverage: float = 0.5

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from gs_regional.config import need
 from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
-from gs_regional.edit.change import match_colors, real_change
+from gs_regional.stages.change import match_colors, real_change
 from gs_regional.geometry.neighbors import quantile_box, within_radius
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import rgb_to_sh

@@ -10,7 +10,7 @@ from typing import Callable, Dict, List, Optional
 
 import torch
 
-from gs_regional.edit.change import edit_change
+from gs_regional.stages.change import edit_change
 
 log = logging.getLogger(__name__)
 
