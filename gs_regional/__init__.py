@@ -10,14 +10,10 @@ _LAZY = {
     "Camera": ("gs_regional.data.cameras", "Camera"),
     "load_cameras": ("gs_regional.api", "load_cameras"),
     "render": ("gs_regional.api", "render"),
+    "edit": ("gs_regional.api", "edit"),
     "load_edit": ("gs_regional.api", "load_edit"),
     "EditResult": ("gs_regional.api", "EditResult"),
 }
-
-
-# `gs_regional.edit` is the package of the edit's stages, made callable (gs_regional/edit/__init__.py):
-# gs_regional.edit(ply, cameras, prompt, ...) runs gs_regional.api.edit.
-from gs_regional import edit  # noqa: E402  (light: its submodules load on use)
 
 
 def __getattr__(name):  # PEP 562: keep `import gs_regional` light

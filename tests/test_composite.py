@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from trial_helpers import launch, metrics_of, trial_of
-from gs_regional.edit.composite import composite_target
-from gs_regional.edit.localize import render_selection
+from gs_regional.stages.composite import composite_target
+from gs_regional.stages.localize import render_selection
 from gs_regional.metrics.image import psnr
 from gs_regional.registry import find
 from gs_regional.sim.scene import make_cameras, make_edit
@@ -159,7 +159,7 @@ def test_edit_coverage_does_not_count_the_blur_of_regenerating_the_view_as_chang
     the edges of the unedited parts outweigh a small edit inside the region, and the safe stop
     ("edit outside the region") fired on correct edits. Known answer: a small recolour inside the
     region, the rest of the view only blurred: (almost) all of the change is in the region."""
-    from gs_regional.edit.change import edit_change, real_change
+    from gs_regional.stages.change import edit_change, real_change
 
     gen = torch.Generator().manual_seed(0)
     h = w = 64
@@ -244,7 +244,7 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     region; not when it is another part beside it at the region's depth (an edit of that part),
     and not when it lies behind but touches the region's margin at a corner only (an object
     placed off the part: the stability sweep's 16 px position jitter, which should stop)."""
-    from gs_regional.edit.change import edit_change
+    from gs_regional.stages.change import edit_change
 
     gen = torch.Generator().manual_seed(0)
     h = w = 48
@@ -341,7 +341,7 @@ def test_recoloured_fraction_tells_an_addition_from_an_addition_that_recolours()
     new object and drifted the longer refinement ran. Known answers on one regenerated (blurred,
     noisy, tone-shifted) view: a dark object drawn on the head recolours nothing beside it; the
     same object on a head turned green recolours all of the rest; a head half green, half."""
-    from gs_regional.edit.change import recoloured_fraction
+    from gs_regional.stages.change import recoloured_fraction
 
     gen = torch.Generator().manual_seed(0)
     source, region = _head_on_body(gen)
@@ -390,7 +390,7 @@ def test_edit_blend_tells_the_recoloured_area_from_the_colour_spilled_beside_it(
     """Known answer: inside the recoloured disc every pixel takes the edit whatever its texture
     (blend about 1); beside it, the spilled colour is at most half of the edit's (the simulator's
     bleed strength 0.5), and far from it nothing changed (0)."""
-    from gs_regional.edit.change import edit_blend
+    from gs_regional.stages.change import edit_blend
 
     source, edited, area, ring = _spilled_recolour()
     blend = edit_blend(edited, source)
@@ -407,8 +407,8 @@ def test_a_recolour_leaves_the_selected_rim_beside_the_part_as_it_was(tmp_path, 
     unedited surroundings (large recolours lose over 10 dB outside the true footprint). Known answer: the true region plus a rim 3 % of the scene wide as the
     selection; the rim's Gaussians keep their source colours and the surroundings score higher
     than with the gate off, while the true region still takes the edit."""
-    from gs_regional.edit import strategies
-    from gs_regional.edit.localize import SEEN_MIN_WEIGHT
+    from gs_regional.stages import strategies
+    from gs_regional.stages.localize import SEEN_MIN_WEIGHT
     from gs_regional.geometry import neighbors, rows
     from gs_regional.systems import regional_edit
 
@@ -451,7 +451,7 @@ def test_a_recolour_the_gate_declines_entirely_says_so(tmp_path, monkeypatch):
     """When the edited views recolour none of the selected Gaussians by `min_edit_blend` (here the
     blend is forced to 0), each keeps its source colours and the scene comes out unchanged: the run
     says so in metrics.json `warnings` instead of passing a no-op off as an edit."""
-    from gs_regional.edit import strategies
+    from gs_regional.stages import strategies
 
     monkeypatch.setattr(strategies, "edit_blend", lambda edited, source: torch.zeros(edited.shape[:2]))
     m = metrics_of(launch(tmp_path, "declined", "data.edit=recolor", "system.prompt=make his head red",
@@ -470,7 +470,7 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     colour, both at the edge's blend: exactly the eyes and the neighbour are distinct. A part
     recoloured fully in one shade keeps its Gaussians a shade apart (`min_distance`), and a small
     part with few fully recoloured Gaussians keeps all of its own (`min_core_fraction`)."""
-    from gs_regional.edit.composite import distinct_parts
+    from gs_regional.stages.composite import distinct_parts
 
     gen = torch.Generator().manual_seed(0)
     skin = torch.tensor([0.62, 0.50, 0.40])
@@ -506,7 +506,7 @@ def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path, monk
     (DISTINCT_PART_BLEND) they keep their source colours, and the head is recoloured as much
     as with the rule off. The output keeps the source's rows in order (a recolour adds none)."""
     from trial_helpers import ply_arrays
-    from gs_regional.edit import strategies
+    from gs_regional.stages import strategies
     from gs_regional.sim.scene import make_scene
 
     recolour = ("data.edit=recolor", "system.prompt=make his head red", "data.width=48", "data.height=48",
@@ -557,8 +557,8 @@ def test_the_recolour_gate_takes_a_part_a_few_pixels_across_and_declines_a_large
     soft edge: its own Gaussians take under half of the edit's nearby colour, so a fixed 0.5
     declined all of it (the face patches of 14-53 Gaussians that came out unchanged); relative to
     its best Gaussians it is taken, and the Gaussians beyond 2 px of it are still declined."""
-    from gs_regional.edit.change import edit_blend
-    from gs_regional.edit.composite import recoloured
+    from gs_regional.stages.change import edit_blend
+    from gs_regional.stages.composite import recoloured
 
     for size in (16, 2):
         source, edited, part, ring = _recolour_views(size)

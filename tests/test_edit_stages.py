@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from gs_regional.data.cameras import Camera
-from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth, unproject
-from gs_regional.edit.localize import expand_selection, mask_agreement
-from gs_regional.edit.views import camera_path, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
+from gs_regional.stages.initialize import InitConfig, new_gaussians_from_depth, unproject
+from gs_regional.stages.localize import expand_selection, mask_agreement
+from gs_regional.stages.views import camera_path, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate

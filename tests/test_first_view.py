@@ -1,8 +1,8 @@
-"""The first-view choice and the safe stop (gs_regional/edit/first_view.py) as plain functions:
+"""The first-view choice and the safe stop (gs_regional/stages/first_view.py) as plain functions:
 known answers on three synthetic views, no system, no Lightning."""
 import torch
 
-from gs_regional.edit.first_view import check_edit, choose_first_view, stop_message
+from gs_regional.stages.first_view import check_edit, choose_first_view, stop_message
 
 H = W = 32
 

@@ -92,9 +92,10 @@ FLOORS = {
     "renderers": 3,
     "guidance": 4, "depth": 4, "metrics": 4,
     "sim": 5,
-    "edit": 6,
+    "stages": 6,
     "systems": 7,
-    "launch": 8, "api": 8,
+    "launch": 8,
+    "api": 9,  # the edit from Python runs launch's path
     "testing": 9,  # random-weight model folders for tests and benchmarks
     "bench": 10,  # benchmarks, the truth suite and the GPU checks: shared by scripts/ and the tests
 }

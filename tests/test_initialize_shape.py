@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from trial_helpers import launch, metrics_of, trial_of
-from gs_regional.edit.initialize import InitConfig, new_gaussians_from_depth
-from gs_regional.edit.localize import render_selection
+from gs_regional.stages.initialize import InitConfig, new_gaussians_from_depth
+from gs_regional.stages.localize import render_selection
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find
 from gs_regional.sim.scene import make_cameras, make_edit
@@ -94,7 +94,7 @@ def test_uncalibrated_shape_change_on_known_disparities():
     """The uncalibrated test on disparities with a known answer: a slanted surface seen under two
     different affine maps with noise has no change of shape; the same with a nearer bump over 3 %
     of the pixels has one; a bump moved *back* (uncovered, not added) is none."""
-    from gs_regional.edit.initialize import disparity_change, shape_change_verdict
+    from gs_regional.stages.initialize import disparity_change, shape_change_verdict
 
     g = torch.Generator().manual_seed(0)
     h = w = 64

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from gs_regional.edit.localize import expand_selection, knn_pool, neighbourhoods
+from gs_regional.stages.localize import expand_selection, knn_pool, neighbourhoods
 from gs_regional.geometry.neighbors import knn, quantile_box, within_radius
 
 

@@ -3,7 +3,7 @@ on the synthetic scene's true `add` edit: the moustache's Gaussians (generation 
 useless ones (hidden inside the head, or transparent) that a known answer says must go."""
 import torch
 
-from gs_regional.edit.prune import useless_added
+from gs_regional.stages.prune import useless_added
 from gs_regional.geometry import rows
 from gs_regional.metrics.image import psnr
 from gs_regional.registry import find

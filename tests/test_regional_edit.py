@@ -15,13 +15,13 @@ from plyfile import PlyData
 from trial_helpers import ROOT, launch, launch_args, metrics_of, ply_arrays, trial_of, write_scene_folder
 from gs_regional.data.scene import split_every
 from gs_regional.sim.scene import make_cameras, make_edit
-from gs_regional.edit.localize import edge_colour_references, localize_gaussians, outside_like_edge_votes
-from gs_regional.edit.views import spread_subset
+from gs_regional.stages.localize import edge_colour_references, localize_gaussians, outside_like_edge_votes
+from gs_regional.stages.views import spread_subset
 from gs_regional.launch import main
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.registry import find
 from gs_regional.renderers.base import PixelWeights
-from gs_regional.edit.localize import LocalizeConfig
+from gs_regional.stages.localize import LocalizeConfig
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, small_demo_run):
@@ -402,7 +402,7 @@ def test_simulator_on_a_scene_without_ground_truth_says_what_to_do(tmp_path, cap
 import dataclasses  # noqa: E402
 
 from gs_regional.sim.scene import SyntheticDataModule  # noqa: E402
-from gs_regional.edit.localize import render_selection  # noqa: E402
+from gs_regional.stages.localize import render_selection  # noqa: E402
 from gs_regional.systems.regional_edit import RegionalEdit  # noqa: E402
 
 

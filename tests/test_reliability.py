@@ -572,7 +572,7 @@ def test_a_first_view_that_shows_the_region_keeps_the_edit_when_its_change_is_dr
     answer: the first view's full edit comes back unchanged; the run keeps that view (its
     selection overlaps its 2D mask as much as any view's). With the rule off (every view taken
     for one that hides the region) the run moves, so the scene does test the rule."""
-    import gs_regional.edit.first_view as first_view
+    import gs_regional.stages.first_view as first_view
     from gs_regional.sim.editor import SimulatedEditor
 
     if rule == "off":

@@ -15,7 +15,7 @@ from trial_helpers import shared_path
 from trial_helpers import launch, metrics_of
 from gs_regional.config import ConfigError
 from gs_regional.data.loaders import save_cameras_json
-from gs_regional.edit.localize import render_selection
+from gs_regional.stages.localize import render_selection
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find
 from gs_regional.utils.sh import sh_to_rgb

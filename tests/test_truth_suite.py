@@ -147,9 +147,9 @@ def test_a_big_ball_follows_the_other_views_off_the_first_views_offset(tmp_path,
     the editor draws a pixel or two off. At 3DGS's position rate (made for 30k steps) refinement's
     180 steps move it too little to follow the other views: its centre stays a third of its radius
     to the side of the true one, a crescent outside the true footprint in every held-out view. At
-    ADDED_POSITION_LR_SCALE = 3 (gs_regional/edit/strategies.py) it moves: more gain and more than
+    ADDED_POSITION_LR_SCALE = 3 (gs_regional/stages/strategies.py) it moves: more gain and more than
     2 dB more outside the footprint than at 1, and no source Gaussian is deleted either way."""
-    from gs_regional.edit import strategies
+    from gs_regional.stages import strategies
 
     runs = {}
     for scale in (1, 3):

@@ -46,7 +46,7 @@ import torch
 
 # Imported once here: the stages run in forked children that share them.
 from gs_regional.bench.launching import ROOT
-from gs_regional.edit.localize import (
+from gs_regional.stages.localize import (
     expand_selection, knn_pool, localize_gaussians, neighbourhoods, render_selection, splat_selection,
 )
 from gs_regional.geometry import rows

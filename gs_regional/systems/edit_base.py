@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from gs_regional.config import ConfigError
-from gs_regional.edit.views import camera_path, order_by_azimuth
+from gs_regional.stages.views import camera_path, order_by_azimuth
 from gs_regional.geometry.formats import ExportConfig, export_scene
 from gs_regional.geometry.gaussian_model import PARAM_NAMES
 from gs_regional.geometry.ply import PlyError, check_ply_header, ply_bytes_with_rows

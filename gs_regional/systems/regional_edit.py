@@ -1,6 +1,6 @@
 """`regional-edit`: the schedule localize → initialize → refinement cycles → finish (DESIGN.md §3).
 What differs between a recolour and an addition is the strategy chosen after initialization
-(gs_regional/edit/strategies.py); the stages' own logic lives beside each stage in gs_regional/edit/."""
+(gs_regional/stages/strategies.py); the stages' own logic lives beside each stage in gs_regional/stages/."""
 from __future__ import annotations
 
 import logging
@@ -11,17 +11,17 @@ from typing import Any, ClassVar, Dict, List, Optional
 import torch
 
 from gs_regional.config import ConfigError, check_saved_config, need
-from gs_regional.edit.ablation import AblationConfig
-from gs_regional.edit.change import recoloured_fraction
-from gs_regional.edit.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
-from gs_regional.edit.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
-from gs_regional.edit.localize import (
+from gs_regional.stages.ablation import AblationConfig
+from gs_regional.stages.change import recoloured_fraction
+from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
+from gs_regional.stages.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
+from gs_regional.stages.localize import (
     LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
 )
-from gs_regional.edit.prune import prune_useless_added
-from gs_regional.edit.state import EditState
-from gs_regional.edit.strategies import EditStrategy, RefineConfig, choose_strategy
-from gs_regional.edit.views import cycle_views, spread_subset
+from gs_regional.stages.prune import prune_useless_added
+from gs_regional.stages.state import EditState
+from gs_regional.stages.strategies import EditStrategy, RefineConfig, choose_strategy
+from gs_regional.stages.views import cycle_views, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.utils.image import dilate
@@ -235,7 +235,7 @@ class RegionalEdit(EditSystemBase):
         return first
 
     def initialize_from_depth(self, views: List[int], regions: List[torch.Tensor], areas: torch.Tensor) -> None:
-        """§3.2 steps 2-5 (edit/initialize.py), from the first view or, when its depth shows no
+        """§3.2 steps 2-5 (stages/initialize.py), from the first view or, when its depth shows no
         change of shape, the next largest regions' (`init.views`); adds the new Gaussians."""
         cfg, s, g, scene = self.cfg, self.state, self.geometry, self.scene
         v = s.v_first
