@@ -72,13 +72,7 @@ def _write_selection(selection: Any, out: Path) -> Path:
     names, kept beside the trials so that the command line in the trial's cmd.txt re-runs it."""
     if isinstance(selection, torch.Tensor):
         selection = selection.detach().cpu().numpy()
-    array = np.asarray(selection)
-    if array.dtype != bool:
-        if array.size and not np.isin(array, (0, 1)).all():
-            from gs_regional.config import ConfigError
-
-            raise ConfigError(f"selection: one bool per source Gaussian, got values other than 0/1 ({array.dtype})")
-        array = array.astype(bool)
+    array = np.asarray(selection)  # checked where the run reads it (regional_edit.read_selection)
     folder = out / "selections"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{hashlib.sha1(array.tobytes() + str(array.shape).encode()).hexdigest()[:16]}.npy"

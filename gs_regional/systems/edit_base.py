@@ -443,8 +443,8 @@ class EditSystemBase(GaussianSystem):
             **{f"count_{k}": v for k, v in self.counts.items()},
             **self.guidance.counters(),  # with several processes, every process's work (map_views)
             # The UNet's wall seconds (this process's calls) and the views per model call at each resolution.
-            "unet_seconds": round(float(getattr(self.guidance, "unet_seconds", 0.0)), 3),
-            "guidance_batch_size": self.guidance.batches_chosen() if hasattr(self.guidance, "batches_chosen") else {},
+            "unet_seconds": round(float(self.guidance.unet_seconds), 3),
+            "guidance_batch_size": self.guidance.batches_chosen(),
             "prior_wait_seconds": round(float(getattr(self, "prior_wait_seconds", 0.0)), 3),
             "world_size": parallel.world_size(self),
         }
@@ -456,7 +456,7 @@ class EditSystemBase(GaussianSystem):
             m = torch.stack([regions[i] for i in views])
             metrics["psnr_unedited"] = psnr(a, s, m)
             metrics["ssim_unedited"] = ssim(a, s, m)
-            alpha = torch.stack([self.render_view(i, self.source_model)["alpha"] for i in views])
+            alpha = torch.stack([self.source_alpha(i) for i in views])
             metrics.update(unedited_scores(a, s, m, alpha, self.cfg.eval.opaque_alpha))
         if self.truth is not None:
             scores, inside = self.truth.scores(views, torch.stack([after[i] for i in views]),
