@@ -3,7 +3,7 @@ from gs_regional.registry import find, register, registered
 
 __version__ = "0.1.0"
 
-__all__ = ["find", "register", "registered", "GaussianModel", "Camera", "load_cameras", "render", "edit", "load_edit", "EditResult"]
+__all__ = ["find", "register", "registered", "GaussianModel", "Camera", "load_cameras", "render", "edit", "load_edit", "EditResult", "localize", "Localized", "load_localized"]
 
 _LAZY = {
     "GaussianModel": ("gs_regional.geometry.gaussian_model", "GaussianModel"),
@@ -13,6 +13,9 @@ _LAZY = {
     "edit": ("gs_regional.api", "edit"),
     "load_edit": ("gs_regional.api", "load_edit"),
     "EditResult": ("gs_regional.api", "EditResult"),
+    "localize": ("gs_regional.api", "localize"),
+    "Localized": ("gs_regional.api", "Localized"),
+    "load_localized": ("gs_regional.api", "load_localized"),
 }
 
 

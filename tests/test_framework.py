@@ -97,6 +97,7 @@ FLOORS = {
     "launch": 8,
     "api": 9,  # the edit from Python runs launch's path
     "testing": 9,  # random-weight model folders for tests and benchmarks
+    "studio": 10,  # the browser studio: runs the API (localize, edit) behind a viser page
     "bench": 10,  # benchmarks, the truth suite and the GPU checks: shared by scripts/ and the tests
 }
 

@@ -143,8 +143,10 @@ def run(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_
     return 0
 
 
-def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None) -> Optional[Path]:
-    """run(), returning the trial dir (None in a process that follows rank 0): gs_regional.edit's way in."""
+def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], custom_dir: Any = None,
+              callbacks: Sequence[Any] = ()) -> Optional[Path]:
+    """run(), returning the trial dir (None in a process that follows rank 0): gs_regional.edit's way in.
+    `callbacks`: more Lightning callbacks for the trainer (the studio's progress and Stop)."""
     started, started_at = time.perf_counter(), time.time()
     verbose = bool(args.verbose or args.debug)
     mode = run_mode(args)
@@ -207,7 +209,7 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
                 log.warning("resume: the config differs from the checkpoint's (%s); this run uses the new values, "
                             "written to %s", "; ".join(changes), trial / "configs" / f"parsed@{cfg.timestamp}.yaml")
             del checkpoint  # Lightning reads it again (the mapped file is not held meanwhile)
-            trainer = _make_trainer(cfg, kw, trial, reused)
+            trainer = _make_trainer(cfg, kw, trial, reused, callbacks)
             system.set_trial_dir(trial)
             system.attach_datamodule(datamodule)
             log.info("trial dir: %s", trial)
@@ -238,10 +240,11 @@ def run_config(cfg: Any) -> Dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool) -> "lightning.Trainer":
+def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool, extra: Sequence[Any] = ()) -> "lightning.Trainer":
     from gs_regional.launch.callbacks import progress_callback
 
     callbacks = [progress_callback()] if kw.get("enable_progress_bar", True) else []
+    callbacks += list(extra)
     if kw.get("enable_checkpointing", True):
         callback = checkpoint_callback(cfg, trial)
         callback.run_config = run_config(cfg)

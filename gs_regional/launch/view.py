@@ -150,11 +150,29 @@ def read_edit_rows(trial: Path, n_edited: int) -> Tuple[Optional[Dict[str, np.nd
     return rows, where
 
 
+def source_scene(cfg: Any, where: str) -> Tuple[PlyGaussians, str, Any]:
+    """(source scene, where it comes from, the data module's scene: cameras, test_indices) of a
+    loaded config: the PLY of system.geometry.ply, or the scene the data module rebuilds (the
+    synthetic figure); ViewError names `where` when there is neither. Photos are not read."""
+    from gs_regional.registry import find
+
+    data_cls = find(cfg.data_type, kind="data", key="data_type")
+    datamodule = data_cls(_data_config_without_photos(data_cls, cfg.data))
+    datamodule.setup("fit")
+    scene = datamodule.scene
+    source_ply = (cfg.system.get("geometry") or {}).get("ply")
+    if source_ply:
+        return read_ply(source_ply), str(source_ply), scene
+    if scene.ground_truth is not None:
+        return scene.ground_truth.source.to_ply_gaussians(), f"{scene.source} (rebuilt from the config)", scene
+    raise ViewError(f"{where}: no source scene: system.geometry.ply is not set and data '{cfg.data_type}' has none")
+
+
 def load_trial(trial_dir: Any, custom_dir: Any = None) -> Trial:
     """Read everything the page shows from a trial dir; ViewError says what is missing."""
     from gs_regional.config import load_config
     from gs_regional.launch.plugins import default_custom_dir, load_plugins
-    from gs_regional.registry import find, load_builtins
+    from gs_regional.registry import load_builtins
 
     trial = Path(trial_dir)
     if not trial.is_dir():
@@ -168,19 +186,7 @@ def load_trial(trial_dir: Any, custom_dir: Any = None) -> Trial:
     load_plugins(custom_dir or default_custom_dir())
     cfg = load_config(str(parsed))
     edited = read_ply(edited_ply)
-
-    # The cameras, and the source scene where the data module knows it (synthetic scenes).
-    data_cls = find(cfg.data_type, kind="data")
-    datamodule = data_cls(_data_config_without_photos(data_cls, cfg.data))
-    datamodule.setup("fit")
-    scene = datamodule.scene
-    source_ply = (cfg.system.get("geometry") or {}).get("ply")
-    if source_ply:
-        source, source_label = read_ply(source_ply), str(source_ply)
-    elif scene.ground_truth is not None:
-        source, source_label = scene.ground_truth.source.to_ply_gaussians(), f"{scene.source} (rebuilt from the config)"
-    else:
-        raise ViewError(f"{parsed}: no source scene: system.geometry.ply is not set and data '{cfg.data_type}' has none")
+    source, source_label, scene = source_scene(cfg, str(parsed))
 
     rows, mask_note = read_edit_rows(trial, edited.num_gaussians)
     edited_mask = source_mask = None
@@ -225,9 +231,9 @@ def _look_at(camera: Camera, centers: np.ndarray) -> np.ndarray:
     return origin + forward * (float(np.median(depth)) if len(depth) else 1.0)
 
 
-def _metrics_markdown(trial: Trial) -> str:
-    m = trial.metrics
-    lines = [f"**Prompt:** {trial.prompt or '(none)'}", ""]
+def metrics_markdown(m: Dict[str, Any], prompt: str) -> str:
+    """The metrics panel: the prompt, the Gaussian counts and the key metrics of metrics.json `m`."""
+    lines = [f"**Prompt:** {prompt or '(none)'}", ""]
     counts = gaussian_counts(m)
     if counts:
         lines.append(f"**Gaussians:** {counts}")
@@ -263,30 +269,52 @@ def _sampling_note(splats: Dict[str, Splats]) -> str:
     return "\n\n".join(lines)
 
 
-def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
-          max_gaussians: int = DEFAULT_MAX_GAUSSIANS) -> Viewer:
-    """Start the viser server for `trial` (in its own threads) and build the page."""
-    import viser
-    import viser.transforms as vtf
+def rig_radius(cameras: Sequence[Camera]) -> float:
+    centers = np.stack([c.center.numpy() for c in cameras])
+    return float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) or 1.0
 
-    scenes = {"edited": (trial.edited, trial.edited_mask), "source": (trial.source, trial.source_mask)}
-    splats = {name: to_splats(g, mask, max_gaussians) for name, (g, mask) in scenes.items()}
-    server = viser.ViserServer(host=host, port=port, label=f"gs_regional: {trial.path.name}", verbose=False)
-    up = _up_direction(trial.cameras)
-    front = _frontal_camera(trial.cameras)
+
+def set_initial_view(server: Any, cameras: Sequence[Camera], points: np.ndarray) -> None:
+    """The scene's up direction and the page's first view: the most frontal camera's, from just
+    in front of its own frustum (not from behind the rig: scenes are often enclosed, e.g. rooms or
+    the synthetic backdrop), looking at the median depth of `points` (N, 3)."""
+    up = _up_direction(cameras)
+    front = _frontal_camera(cameras)
     server.scene.set_up_direction(tuple(float(v) for v in up))
-    # The most frontal camera's view, from just in front of its own frustum (not from behind the
-    # rig: scenes are often enclosed, e.g. rooms or the synthetic backdrop).
-    centers = np.stack([c.center.numpy() for c in trial.cameras])
-    radius = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) or 1.0
-    target = _look_at(front, splats["edited"].centers)
+    target = _look_at(front, points)
     origin = front.camera_to_world[:3, 3].numpy()
-    position = origin + (target - origin) / np.linalg.norm(target - origin) * 1.5 * FRUSTUM_SIZE * radius
+    position = origin + (target - origin) / np.linalg.norm(target - origin) * 1.5 * FRUSTUM_SIZE * rig_radius(cameras)
     server.initial_camera.position = tuple(float(v) for v in position)
     server.initial_camera.look_at = tuple(float(v) for v in target)
     server.initial_camera.up = tuple(float(v) for v in up)
     server.initial_camera.fov = 2 * math.atan(front.height / (2 * front.fy))
 
+
+def add_frustums(server: Any, cameras: Sequence[Camera], test: Any) -> List[Any]:
+    """The cameras as frustums (held-out ones, indices in `test`, in another colour)."""
+    import viser.transforms as vtf
+
+    radius = rig_radius(cameras)
+    frustums = []
+    for i, cam in enumerate(cameras):
+        c2w = cam.camera_to_world.numpy()
+        frustums.append(server.scene.add_camera_frustum(
+            f"/cameras/{'test' if i in test else 'train'}_{i:04d}",
+            fov=2 * math.atan(cam.height / (2 * cam.fy)), aspect=cam.width / cam.height, scale=FRUSTUM_SIZE * radius,
+            thickness=0.002 * radius, color=TEST_FRUSTUM_COLOUR if i in test else TRAIN_FRUSTUM_COLOUR,
+            wxyz=vtf.SO3.from_matrix(c2w[:3, :3]).wxyz, position=c2w[:3, 3]))
+    return frustums
+
+
+def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
+          max_gaussians: int = DEFAULT_MAX_GAUSSIANS) -> Viewer:
+    """Start the viser server for `trial` (in its own threads) and build the page."""
+    import viser
+
+    scenes = {"edited": (trial.edited, trial.edited_mask), "source": (trial.source, trial.source_mask)}
+    splats = {name: to_splats(g, mask, max_gaussians) for name, (g, mask) in scenes.items()}
+    server = viser.ViserServer(host=host, port=port, label=f"gs_regional: {trial.path.name}", verbose=False)
+    set_initial_view(server, trial.cameras, splats["edited"].centers)
     nodes = {
         name: server.scene.add_gaussian_splats(
             f"/{name}", centers=s.centers, covariances=s.covariances, rgbs=s.rgbs, opacities=s.opacities,
@@ -294,14 +322,7 @@ def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
         for name, s in splats.items()
     }
     test = set(trial.test_indices)
-    frustums = []
-    for i, cam in enumerate(trial.cameras):
-        c2w = cam.camera_to_world.numpy()
-        frustums.append(server.scene.add_camera_frustum(
-            f"/cameras/{'test' if i in test else 'train'}_{i:04d}",
-            fov=2 * math.atan(cam.height / (2 * cam.fy)), aspect=cam.width / cam.height, scale=FRUSTUM_SIZE * radius,
-            thickness=0.002 * radius, color=TEST_FRUSTUM_COLOUR if i in test else TRAIN_FRUSTUM_COLOUR,
-            wxyz=vtf.SO3.from_matrix(c2w[:3, :3]).wxyz, position=c2w[:3, 3]))
+    frustums = add_frustums(server, trial.cameras, test)
 
     gui = server.gui
     gui.add_markdown(f"**Trial:** `{trial.path}`")
@@ -311,7 +332,7 @@ def serve(trial: Trial, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
     gui.add_markdown(trial.mask_note)
     show_cameras = gui.add_checkbox("Cameras", initial_value=True)
     gui.add_markdown(f"{len(trial.cameras) - len(test)} training cameras (blue), {len(test)} held out (orange)")
-    gui.add_markdown(_metrics_markdown(trial))
+    gui.add_markdown(metrics_markdown(trial.metrics, trial.prompt))
     gui.add_markdown(f"Source: `{trial.source_label}`")
     largest = max(s.total for s in splats.values())
     shown = gui.add_number("Gaussians shown", initial_value=max(s.shown for s in splats.values()),

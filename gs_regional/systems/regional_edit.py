@@ -155,6 +155,7 @@ class RegionalEdit(EditSystemBase):
         if cfg.ablation.localize_with_truth:  # check_scene made sure there is a truth
             selected = self.scene.ground_truth.region.to(self.device)
         g.mask.copy_(selected)
+        self.save_localization(loc, selected, masks, views)
         # The localized region as rows of the source scene: what the composite and the evaluation
         # render from the source, however densification and pruning move the rows later.
         s.source_selection = rows.source_rows(g, selected, self.n_source)
@@ -177,6 +178,25 @@ class RegionalEdit(EditSystemBase):
             g.select(selected).save_ply(str(self.save_dir / "mask.ply"))
         s.localize_metrics = parallel.from_rank_zero(self, s.localize_metrics)  # one decision to go on
         s.phase = "initialize"
+
+    def save_localization(self, loc, selected: torch.Tensor, masks, views: List[int]) -> None:
+        """save/localization.npz, the evidence a selection is re-made from without the editor
+        (gs_regional.localize, the studio): `selected` (N,) bool; with a lift also its `scores`
+        (N,) float32, `threshold` (the lift's mask_threshold), `expand_radius` (world units) and
+        `neighbourhood` (N, k) int32 rows; `views` and their 2D `masks` (V, H, W) bool."""
+        if not self.writes_outputs:
+            return
+        import numpy as np
+
+        out = {"selected": selected.cpu().numpy(), "views": np.asarray(views, dtype=np.int32)}
+        if masks is not None:
+            out["masks"] = (masks > 0.5).cpu().numpy()
+        if loc is not None:
+            out.update(scores=loc.lifted["scores"].float().cpu().numpy(), threshold=np.float32(loc.lift["threshold"]),
+                       expand_radius=np.float32(self.cfg.localization.expand_radius * self.scene.extent))
+            if loc.lifted["neighbourhood"] is not None:
+                out["neighbourhood"] = loc.lifted["neighbourhood"].to(torch.int32).cpu().numpy()
+        np.savez(self.save_path("localization.npz"), **out)
 
     # ----- stage 2 -------------------------------------------------------------------------------
     def rendered_mask(self, index: int) -> torch.Tensor:
