@@ -22,7 +22,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8080
 DOWNLOADS = (".ply", ".splat", ".compressed.ply")
-RELEVANCE_COLUMNS = 6  # relevance maps per row in the panel
+RELEVANCE_COLUMNS = 4  # relevance maps per row in the panel
+RELEVANCE_MIN_HEIGHT = 96  # pixels: smaller views are enlarged to this
 
 
 def highlighted(rgbs: np.ndarray, mask: Optional[np.ndarray]) -> np.ndarray:
@@ -45,6 +46,8 @@ def relevance_grid(trial: Path, columns: int = RELEVANCE_COLUMNS) -> Optional[np
     if not paths:
         return None
     images = [iio.imread(p)[..., :3] for p in paths]
+    scale = max(1, RELEVANCE_MIN_HEIGHT // max(images[0].shape[0], 1))  # small views shown larger, pixel for pixel
+    images = [np.repeat(np.repeat(im, scale, 0), scale, 1) for im in images]
     return make_grid([images[i:i + columns] for i in range(0, len(images), columns)], margin=2)
 
 

@@ -247,7 +247,9 @@ class StudioSession:
             refused = self._refuse_common(instruction, "Select region")
             if refused:
                 return refused
-            overrides = {**self.overrides, "system.prompt": instruction.strip()}
+            # Its own trial (<tag>-select), beside the edits' (the config's tag).
+            tag = {"tag": f"{self.cfg.get('tag') or 'studio'}-select"} if "tag" not in self.overrides else {}
+            overrides = {**self.overrides, **tag, "system.prompt": instruction.strip()}
 
             def work() -> None:
                 t0 = time.perf_counter()
