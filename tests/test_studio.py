@@ -78,6 +78,15 @@ def test_select_costs_no_editor_call(localized, monkeypatch):
     assert sorted(counts.values(), reverse=True) == list(counts.values()) and len(set(counts.values())) == 4
 
 
+def test_localized_edit_edits_a_selection_of_its_evidence(localized):
+    _, loc = localized
+    chosen = loc.select(0.6)
+    result = loc.edit(chosen)
+    assert isinstance(result, gr.EditResult) and result.trial.parent == loc.trial.parent
+    assert torch.equal(result.selection, chosen) and result.metrics["gaussians_after"] == result.model.num_gaussians
+    assert "stopped" not in result.metrics and result.metrics["unet_evals"] > loc.metrics["unet_evals"]
+
+
 def test_a_given_selection_is_saved_without_scores(localized):
     out, loc = localized
     from gs_regional.sim.scene import make_edit
@@ -120,6 +129,14 @@ def test_the_studios_edit_is_the_command_lines(tmp_path):
         assert abs(ours[key] - theirs[key]) <= 0.05, key
     for suffix in (".ply", ".splat", ".compressed.ply"):
         assert s.download(suffix).is_file()
+    # A normal trial: the viewer reads it, and --export works on its checkpoint.
+    from gs_regional.launch import main
+    from gs_regional.launch.view import load_trial
+
+    shown = load_trial(trial)
+    assert shown.edited.num_gaussians == ours["gaussians_after"] and int(shown.source_mask.sum()) == s.count
+    assert main(["--config", str(trial / "configs" / "parsed.yaml"), "--export", f"resume={trial / 'ckpts' / 'last.ckpt'}"]) == 0
+    assert len(list((trial / "save").glob("export_step*[0-9].ply"))) == 1
 
 
 def test_bad_input_is_a_message_not_a_traceback(tmp_path):
@@ -137,8 +154,9 @@ def test_bad_input_is_a_message_not_a_traceback(tmp_path):
 
 
 def test_missing_viewer_extra_and_bad_config_are_one_line_exit_2(monkeypatch, tmp_path):
-    from gs_regional.studio import main
+    from gs_regional.studio import build_parser, main
 
+    assert build_parser().parse_args(["--studio"]).host == "127.0.0.1"  # this machine only unless --host
     err = io.StringIO()
     with redirect_stderr(err):
         code = main(["--studio", "--config", str(tmp_path / "nope.yaml")])

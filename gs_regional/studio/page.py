@@ -8,7 +8,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Callable, Dict, Optional
 
 import numpy as np
 
@@ -16,7 +16,7 @@ from gs_regional.launch.view import (
     DEFAULT_MAX_GAUSSIANS, MASK_COLOUR, MASK_TINT, Splats, add_frustums, metrics_markdown, set_initial_view,
     subsample_rows, to_splats,
 )
-from gs_regional.studio.session import StudioSession, client_camera
+from gs_regional.studio.session import StudioSession, client_camera, one_line
 
 log = logging.getLogger(__name__)
 
@@ -127,57 +127,50 @@ class Page:
                 self.status.content = self._status_text()
 
     # ----- the controls -----------------------------------------------------------------------
+    def _safe(self, what: str, action: Callable[[Any], None]) -> Callable[[Any], None]:
+        """`action` as a control's callback: an unexpected failure is a line on the page (and the
+        log), never a dead control."""
+
+        def run(event: Any) -> None:
+            try:
+                action(event)
+            except Exception as e:
+                log.warning("studio: %s failed", what, exc_info=True)
+                self.session._say(f"{what} failed: {one_line(e)}")
+
+        return run
+
     def _bind(self) -> None:
         s = self.session
 
-        @self.select_button.on_click
-        def _(event) -> None:
+        def select(event) -> None:
             self._clicked = time.perf_counter()
             s.select_region(self.instruction.value)
 
-        @self.threshold.on_update
-        def _(event) -> None:
+        def threshold(event) -> None:
             if s.localized is None or s.threshold is not None and abs(s.threshold - self.threshold.value) < 1e-9:
                 return
             t0 = time.perf_counter()
             if s.set_threshold(self.threshold.value) is None:
                 self.shown_times["threshold_seconds"] = time.perf_counter() - t0
 
-        @self.add_button.on_click
-        def _(event) -> None:
-            self._set_pick("add")
-
-        @self.remove_button.on_click
-        def _(event) -> None:
-            self._set_pick("remove")
-
-        @self.pick_off.on_click
-        def _(event) -> None:
-            self._set_pick(None)
-
-        @self.highlight.on_update
-        def _(event) -> None:
-            self._show_selection()
-
-        @self.edit_button.on_click
-        def _(event) -> None:
-            s.start_edit(self.instruction.value)
-
-        @self.stop_button.on_click
-        def _(event) -> None:
-            s.stop()
-
-        @self.before_after.on_click
-        def _(event) -> None:
-            self._show_scene(self.before_after.value)
-
-        @self.show_cameras.on_update
-        def _(event) -> None:
+        def show_cameras(event) -> None:
             for f in self.frustums:
                 f.visible = self.show_cameras.value
 
+        self.select_button.on_click(self._safe("Select region", select))
+        self.threshold.on_update(self._safe("Threshold", threshold))
+        self.add_button.on_click(self._safe("Add to selection", lambda event: self._set_pick("add")))
+        self.remove_button.on_click(self._safe("Remove from selection", lambda event: self._set_pick("remove")))
+        self.pick_off.on_click(self._safe("Stop picking", lambda event: self._set_pick(None)))
+        self.highlight.on_update(self._safe("Highlight selection", lambda event: self._show_selection()))
+        self.edit_button.on_click(self._safe("Edit", lambda event: s.start_edit(self.instruction.value)))
+        self.stop_button.on_click(self._safe("Stop", lambda event: s.stop()))
+        self.before_after.on_click(self._safe("Before / after", lambda event: self._show_scene(self.before_after.value)))
+        self.show_cameras.on_update(self._safe("Cameras", show_cameras))
+        self._on_click = self._safe("A click on the scene", self._on_click)
         for suffix, button in self.downloads.items():
-            button.on_click(lambda event, suffix=suffix: self._download(event, suffix))
+            button.on_click(self._safe(f"Download {suffix}", lambda event, suffix=suffix: self._download(event, suffix)))
 
     def _set_pick(self, mode: Optional[str]) -> None:
         self.pick_mode = mode
@@ -219,6 +212,14 @@ class Page:
         self.add_button.disabled = self.remove_button.disabled = not has_selection
         self.edit_button.disabled = not has_selection
         if what == "selection":
+            if s.result is None and s.preview is None:  # a new localization: no edit of it yet
+                for button in self.downloads.values():
+                    button.disabled = True
+                if "edited" in self.nodes:
+                    self.nodes.pop("edited").remove()
+                    self.metrics.content = ""
+                    self.before_after.value = "Before"
+                    self._show_scene("Before")
             if s.threshold is not None and abs(self.threshold.value - s.threshold) > 1e-9:
                 self.threshold.value = s.threshold
             if s.localized is not None and s.progress.kind == "select":

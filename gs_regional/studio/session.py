@@ -84,7 +84,7 @@ class StudioCallback(Callback):
 
     def on_train_start(self, trainer, pl_module) -> None:
         what = "localizing (relevance maps and the lift)" if self.kind == "select" else \
-            "localizing, initializing (the first view's full edit and its depth)"
+            "initializing (the first view's full edit and its depth)"
         self.session._progress(self.kind, what, total=int(trainer.max_steps or 0))
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
@@ -223,6 +223,7 @@ class StudioSession:
         self.stop_requested.clear()
         self.progress = Progress(kind=kind, text="starting", running=True, started=time.perf_counter())
         self.message = ""
+        self._notify("message")
 
         def run() -> None:
             try:
@@ -347,8 +348,6 @@ class StudioSession:
         with self.lock:
             if self.localized is None:
                 return self._say("Press Select region first: a click adds to or removes from its selection")
-            if self.busy and self.progress.kind == "edit":
-                return self._say("The selection cannot change while an edit runs on it")
             hit = self.picked(camera, x, y, steps)
             if not bool(hit.any()):
                 return self._say("That click hit no Gaussian: click on the scene itself")
