@@ -133,9 +133,10 @@ def edit(
 
 
 # What a localization-only run need not write (its trial keeps the evidence, save/localization.npz):
-# the viewer formats and a turntable of an unchanged scene. The caller's overrides come after these.
+# the viewer formats, and a turntable and more than one scored view of an unchanged scene. The
+# caller's overrides come after these.
 LOCALIZE_ONLY = {"system.stop_after": "localize", "system.export.splat": False, "system.export.compressed_ply": False,
-                 "system.eval.turntable_frames": 1}
+                 "system.eval.turntable_frames": 1, "system.eval.max_test_views": 1}
 LOCALIZATION_FILE = "localization.npz"
 
 
@@ -165,6 +166,16 @@ class Localized:
     @property
     def count(self) -> int:
         return int(self.selection.sum())
+
+    def to(self, device: Any) -> "Localized":
+        """The scene and its evidence moved to `device` (select and picking run where they are)."""
+        self.source = self.source.to(device)
+        for name in ("selection", "scores", "neighbourhood"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, value.to(device))
+        self.masks = {k: m.to(device) for k, m in self.masks.items()}
+        return self
 
     def select(self, threshold: Optional[float] = None) -> torch.Tensor:
         """(N,) bool: the selection re-lifted at `threshold` from the saved evidence, no editor call:
@@ -207,7 +218,10 @@ def localize(
     trial = _run(config, ply, cameras, prompt, None, out, given, gpu, verbose, callbacks)
     run = dict(ply=ply, cameras=cameras, prompt=prompt, config=config, out=out, overrides=dict(overrides or {}),
                gpu=gpu, verbose=verbose)
-    return load_localized(trial, run)
+    loc = load_localized(trial, run)
+    if gpu is not None and torch.cuda.is_available():  # on the device the run used
+        loc.to(f"cuda:{str(gpu).split(',')[0].strip()}")
+    return loc
 
 
 def load_localized(trial: Any, run: Optional[Dict[str, Any]] = None) -> Localized:

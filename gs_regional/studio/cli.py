@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; 0.0.0.0: every interface)")
     p.add_argument("--max-gaussians", type=int, default=DEFAULT_MAX_GAUSSIANS,
                    help=f"show a random subsample of this many Gaussians above it (default {DEFAULT_MAX_GAUSSIANS:,}; 0: all)")
+    p.add_argument("--gpu", default=None, help="CUDA device index for the runs, as launch.py's --gpu (without it: the CPU)")
     p.add_argument("--custom-dir", default=None, help="plugin folder (default: custom/ beside launch.py)")
     p.add_argument("--debug", action="store_true", help="tracebacks instead of one-line errors")
     return p
@@ -59,7 +60,7 @@ def main(argv: Sequence[str], custom_dir: Any = None) -> int:
 
     try:
         started = time.perf_counter()
-        session = StudioSession.open(config, extra, args.custom_dir or custom_dir)
+        session = StudioSession.open(config, extra, args.custom_dir or custom_dir, gpu=args.gpu)
         studio = serve(session, host=args.host, port=args.port, max_gaussians=args.max_gaussians)
     except Exception as e:
         if args.debug or not (isinstance(e, OSError) or is_user_error(e)):

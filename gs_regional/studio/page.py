@@ -61,6 +61,7 @@ class Studio:
     page: "Page"
 
     def stop(self) -> None:
+        self.page.close()
         self.server.stop()
 
 
@@ -117,14 +118,19 @@ class Page:
         self._bind()
         s.listeners.append(self.on_session)
         server.scene.on_click()(self._on_click)
+        self.closed = threading.Event()
         threading.Thread(target=self._tick, name="studio-clock", daemon=True).start()
 
     def _tick(self) -> None:
         """The running job's seconds on the page, once a second."""
-        while True:
-            time.sleep(1.0)
-            if self.session.busy:
+        while not self.closed.wait(1.0):
+            if self.session.progress.running:
                 self.status.content = self._status_text()
+
+    def close(self) -> None:
+        self.closed.set()
+        if self.on_session in self.session.listeners:
+            self.session.listeners.remove(self.on_session)
 
     # ----- the controls -----------------------------------------------------------------------
     def _safe(self, what: str, action: Callable[[Any], None]) -> Callable[[Any], None]:
@@ -203,7 +209,7 @@ class Page:
             self.status.content = self._status_text()
         if what == "message":
             self.message.content = f"**Note:** {s.message}" if s.message else ""
-        busy = s.busy
+        busy = s.progress.running  # (its thread may still be ending)
         editing = busy and s.progress.kind == "edit"
         self.select_button.disabled = s.source is None
         self.stop_button.disabled = not editing

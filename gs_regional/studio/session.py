@@ -122,6 +122,7 @@ class StudioSession:
     load_error: Optional[str] = None
     prompt: str = ""  # the config's instruction, offered on the page
     out: Path = Path("outputs")
+    gpu: Optional[str] = None  # launch.py's --gpu for the runs (and the evidence on that device)
 
     def __post_init__(self) -> None:
         self.lock = threading.RLock()
@@ -145,7 +146,8 @@ class StudioSession:
 
     # ----- the scene ------------------------------------------------------------------------
     @classmethod
-    def open(cls, config: Any, overrides: Sequence[str] = (), custom_dir: Any = None) -> "StudioSession":
+    def open(cls, config: Any, overrides: Sequence[str] = (), custom_dir: Any = None,
+             gpu: Optional[str] = None) -> "StudioSession":
         """Read the config (a mistake in it raises its one-line ConfigError) and its scene (a scene
         that fails to load is kept as `load_error`, for the page to say)."""
         from gs_regional.config import load_config
@@ -154,7 +156,7 @@ class StudioSession:
         from gs_regional.launch.view import source_scene
         from gs_regional.registry import load_builtins
 
-        s = cls(config=Path(config), overrides=overrides_dict(overrides), custom_dir=custom_dir)
+        s = cls(config=Path(config), overrides=overrides_dict(overrides), custom_dir=custom_dir, gpu=gpu)
         load_builtins()
         load_plugins(custom_dir or default_custom_dir())
         s.cfg = load_config(str(config), [f"{k}={v}" for k, v in s.overrides.items()], section_configs=section_configs)
@@ -254,7 +256,7 @@ class StudioSession:
 
             def work() -> None:
                 t0 = time.perf_counter()
-                loc = localize(config=self.config, out=self.out, overrides=overrides,
+                loc = localize(config=self.config, out=self.out, overrides=overrides, gpu=self.gpu,
                                callbacks=[StudioCallback(self, "select")])
                 self.unet_evals += int(loc.metrics.get("unet_evals", 0))
                 with self.lock:
@@ -381,7 +383,7 @@ class StudioSession:
 
             def work() -> None:
                 t0 = time.perf_counter()
-                result = edit(config=self.config, selection=selection, out=self.out, overrides=overrides,
+                result = edit(config=self.config, selection=selection, out=self.out, overrides=overrides, gpu=self.gpu,
                               callbacks=[StudioCallback(self, "edit")])
                 self.unet_evals += int(result.metrics.get("unet_evals", 0))
                 self.result, self.edit_trial = result, result.trial
