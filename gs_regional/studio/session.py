@@ -170,6 +170,13 @@ class StudioSession:
             log.warning("studio: %s", s.load_error)
         return s
 
+    def shown_path(self, trial: Path) -> str:
+        """A trial dir as the page names it: under the exp_root_dir."""
+        try:
+            return str(Path(trial).relative_to(self.out))
+        except ValueError:
+            return str(trial)
+
     @property
     def n(self) -> int:
         return 0 if self.source is None else self.source.num_gaussians
@@ -269,7 +276,7 @@ class StudioSession:
                 self.timings["select_seconds"] = time.perf_counter() - t0
                 count = self.count
                 self.progress.text = (f"Selected {count:,} of {self.n:,} Gaussians in "
-                                      f"{self.timings['select_seconds']:.1f} s (trial {loc.trial})")
+                                      f"{self.timings['select_seconds']:.1f} s (trial {self.shown_path(loc.trial)})")
                 if count == 0:
                     self._say(f"Nothing was selected for \"{instruction.strip()}\" at threshold "
                               f"{loc.threshold}: lower the Threshold, or change the instruction")
@@ -391,7 +398,7 @@ class StudioSession:
                 stopped = self.stop_requested.is_set() and self.progress.step < self.progress.total
                 self.progress.text = (f"{'Stopped at step %d/%d' % (self.progress.step, self.progress.total) if stopped else 'Done'}"
                                       f" in {self.timings['edit_seconds']:.1f} s: {result.model.num_gaussians:,} "
-                                      f"Gaussians; trial {result.trial}")
+                                      f"Gaussians; trial {self.shown_path(result.trial)}")
                 self._notify("result")
 
             self._start("edit", work)
