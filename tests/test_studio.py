@@ -114,6 +114,8 @@ def test_the_studios_edit_is_the_command_lines(tmp_path):
     assert s.load_error is None and s.n == 9765 and s.prompt == PROMPT
     assert s.select_region(PROMPT) is None and s.wait(120)
     assert s.message == "" and s.count == s.localized.count > 0
+    assert s.set_threshold(1.0) is None and s.count == 0  # no score exceeds 1
+    assert "the selection is empty" in s.start_edit(PROMPT) and not s.busy
     assert s.set_threshold(0.4) is None and s.count == int(s.localized.select(0.4).sum()) > s.localized.count
     assert s.start_edit(PROMPT) is None and s.wait(300), s.message
     assert s.progress.text.startswith("Done"), s.message
@@ -308,6 +310,38 @@ def test_the_whole_flow_in_the_browser(tmp_path, monkeypatch):
             again.get_by_role("button", name="Stop", exact=True).click()
             again.get_by_text("Status: Edit: Stopped at step").wait_for(timeout=60_000)
             assert (s.edit_trial / "save" / "edited.ply").is_file() and (s.edit_trial / "save" / "metrics.json").is_file()
+            assert (s.edit_trial / "ckpts" / "last.ckpt").is_file()  # resume= continues it
             assert s.progress.step < s.progress.total == 1200
     finally:
         studio.stop()
+
+
+def test_launch_py_serves_the_studio(tmp_path):
+    """`python launch.py --studio` (no --config: the demo's scene) serves the page on this machine."""
+    pytest.importorskip("viser", reason="the 'viewer' extra (viser) is not installed")
+    import os
+    import subprocess
+    import urllib.request
+
+    from trial_helpers import ROOT
+
+    port = _free_port()
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "launch.py"), "--studio", "--port", str(port),
+                             f"exp_root_dir={tmp_path}"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline, lines = time.monotonic() + 120, []
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "ready in" in line:
+                break
+        assert any(f"demo.yaml ready in" in line and f"http://localhost:{port}" in line for line in lines), "".join(lines)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as response:
+            assert response.status == 200
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

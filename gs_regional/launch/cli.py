@@ -16,8 +16,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="launch.py",
         description="Run a gs_regional experiment: python launch.py --config X.yaml --train [key=value ...]",
-        epilog="View an edit run in the browser: python launch.py --view TRIAL_DIR [--port 8080] "
-               "(needs the 'viewer' extra; --view --help lists its options)",
+        epilog="View an edit run in the browser: python launch.py --view TRIAL_DIR [--port 8080]; edit from the "
+               "browser: python launch.py --studio [--config X.yaml] (both need the 'viewer' extra; "
+               "--view --help and --studio --help list their options)",
     )
     p.add_argument("--config", required=True, help="YAML experiment config")
     mode = p.add_mutually_exclusive_group()

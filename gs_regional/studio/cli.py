@@ -15,7 +15,7 @@ def build_parser() -> argparse.ArgumentParser:
     from gs_regional.launch.view import DEFAULT_MAX_GAUSSIANS
 
     p = argparse.ArgumentParser(
-        prog="launch.py --studio",
+        prog="launch.py",
         description="Edit from the browser: python launch.py --studio [--config X.yaml] [--port 8080] [key=value ...]",
     )
     p.add_argument("--studio", action="store_true", required=True, help="serve the studio")
