@@ -76,6 +76,8 @@ class Page:
         self.nodes: Dict[str, Any] = {}
         self.scene_shown = "Before"
         self.pick_mode: Optional[str] = None
+        self._relevance_of: Optional[Path] = None  # the localization whose relevance maps are shown
+        self._clicked: Optional[float] = None  # when Select region was pressed (for shown_times)
         self.shown_times: Dict[str, float] = {}  # seconds from a control to its highlight on the page
 
         gui.add_markdown("**gs_regional studio**" + (f": `{s.source_label}`" if s.source_label else ""))
@@ -224,17 +226,17 @@ class Page:
                 if "edited" in self.nodes:
                     self.nodes.pop("edited").remove()
                     self.metrics.content = ""
-                    self.before_after.value = "Before"
                     self._show_scene("Before")
             if s.threshold is not None and abs(self.threshold.value - s.threshold) > 1e-9:
                 self.threshold.value = s.threshold
-            if s.localized is not None and s.progress.kind == "select":
+            if s.localized is not None and self._relevance_of != s.localized.trial:  # a new localization
+                self._relevance_of = s.localized.trial
                 grid = relevance_grid(s.localized.trial)
                 if grid is not None:
                     self.relevance.image = grid
-                    self.relevance.visible = True
+                self.relevance.visible = grid is not None
             self._show_selection()
-            if getattr(self, "_clicked", None) is not None:
+            if self._clicked is not None:
                 self.shown_times["select_seconds"] = time.perf_counter() - self._clicked
                 self._clicked = None
         if what == "preview" and s.preview is not None:
@@ -289,15 +291,16 @@ class Page:
                 opacities=edited.opacities, visible=self.scene_shown == "After")
 
     def _show_scene(self, which: str) -> None:
-        self.scene_shown = which
-        if "edited" not in self.nodes:
+        if which == "After" and "edited" not in self.nodes:
+            self.session._say("After: no edit yet; the scene before is shown")
             which = "Before"
-            if self.before_after.value == "After":
-                self.session._say("After: no edit yet, the scene before is shown")
+        self.scene_shown = which
         if "source" in self.nodes:
             self.nodes["source"].visible = which == "Before"
         if "edited" in self.nodes:
             self.nodes["edited"].visible = which == "After"
+        if self.before_after.value != which:
+            self.before_after.value = which
         self.showing.content = f"Showing: **{which.lower()}**"
 
 

@@ -192,8 +192,8 @@ class RegionalEdit(EditSystemBase):
         if masks is not None:
             out["masks"] = (masks > 0.5).cpu().numpy()
         if loc is not None:
-            out.update(scores=loc.lifted["scores"].float().cpu().numpy(), threshold=np.float32(loc.lift["threshold"]),
-                       expand_radius=np.float32(self.cfg.localization.expand_radius * self.scene.extent))
+            out.update(scores=loc.lifted["scores"].float().cpu().numpy(), threshold=np.float64(loc.lift["threshold"]),
+                       expand_radius=np.float64(self.cfg.localization.expand_radius * self.scene.extent))
             if loc.lifted["neighbourhood"] is not None:
                 out["neighbourhood"] = loc.lifted["neighbourhood"].to(torch.int32).cpu().numpy()
         np.savez(self.save_path("localization.npz"), **out)
