@@ -153,6 +153,15 @@ def test_bad_input_is_a_message_not_a_traceback(tmp_path):
     assert broken.source is None and "the scene could not be loaded" in broken.load_error
     assert "missing.ply" in broken.load_error and len(broken.load_error.splitlines()) == 1
     assert "the scene could not be loaded" in broken.select_region(PROMPT)
+    pytest.importorskip("viser", reason="the 'viewer' extra (viser) is not installed")
+    from gs_regional.studio.page import serve
+
+    studio = serve(broken, port=_free_port())  # the page comes up and says it
+    try:
+        assert "the scene could not be loaded" in studio.page.message.content
+        assert studio.page.select_button.disabled and studio.page.edit_button.disabled
+    finally:
+        studio.stop()
 
 
 def test_missing_viewer_extra_and_bad_config_are_one_line_exit_2(monkeypatch, tmp_path):

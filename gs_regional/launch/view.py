@@ -69,10 +69,15 @@ class Splats:
         return len(self.centers)
 
     def highlighted_rgbs(self) -> np.ndarray:
-        rgbs = self.rgbs.copy()
-        if self.mask is not None:
-            rgbs[self.mask] = (1 - MASK_TINT) * rgbs[self.mask] + MASK_TINT * MASK_COLOUR
-        return rgbs
+        return tinted(self.rgbs, self.mask)
+
+
+def tinted(rgbs: np.ndarray, mask: Optional[np.ndarray]) -> np.ndarray:
+    """`rgbs` (N, 3) with the rows of `mask` (N,) bool tinted in the mask colour (a copy)."""
+    rgbs = rgbs.copy()
+    if mask is not None:
+        rgbs[mask] = (1 - MASK_TINT) * rgbs[mask] + MASK_TINT * MASK_COLOUR
+    return rgbs
 
 
 def subsample_rows(n: int, cap: int, seed: int = 0) -> Optional[np.ndarray]:

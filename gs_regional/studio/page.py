@@ -13,8 +13,7 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 
 from gs_regional.launch.view import (
-    DEFAULT_MAX_GAUSSIANS, MASK_COLOUR, MASK_TINT, Splats, add_frustums, metrics_markdown, set_initial_view,
-    subsample_rows, to_splats,
+    DEFAULT_MAX_GAUSSIANS, Splats, add_frustums, metrics_markdown, set_initial_view, subsample_rows, tinted, to_splats,
 )
 from gs_regional.studio.session import StudioSession, client_camera, one_line
 
@@ -24,15 +23,6 @@ DEFAULT_PORT = 8080
 DOWNLOADS = (".ply", ".splat", ".compressed.ply")
 RELEVANCE_COLUMNS = 4  # relevance maps per row in the panel
 RELEVANCE_MIN_HEIGHT = 96  # pixels: smaller views are enlarged to this
-
-
-def highlighted(rgbs: np.ndarray, mask: Optional[np.ndarray]) -> np.ndarray:
-    """`rgbs` with the rows of `mask` tinted in the viewer's mask colour."""
-    if mask is None or not mask.any():
-        return rgbs
-    out = rgbs.copy()
-    out[mask] = (1 - MASK_TINT) * out[mask] + MASK_TINT * MASK_COLOUR
-    return out
 
 
 def relevance_grid(trial: Path, columns: int = RELEVANCE_COLUMNS) -> Optional[np.ndarray]:
@@ -270,7 +260,7 @@ class Page:
         mask = sel.cpu().numpy()
         shown = mask if self.rows is None else mask[self.rows]
         src = self.splats["source"]
-        self.nodes["source"].rgbs = highlighted(src.rgbs, shown if self.highlight.value else None)
+        self.nodes["source"].rgbs = tinted(src.rgbs, shown if self.highlight.value else None)
         extra = []
         if s.added is not None and bool(s.added.any()):
             extra.append(f"{int(s.added.sum()):,} added")
