@@ -141,8 +141,20 @@ def test_the_studios_edit_is_the_command_lines(tmp_path):
     assert len(list((trial / "save").glob("export_step*[0-9].ply"))) == 1
 
 
-def test_bad_input_is_a_message_not_a_traceback(tmp_path):
+def test_bad_input_is_a_message_not_a_traceback(tmp_path, monkeypatch):
+    from gs_regional.config import ConfigError
+    from gs_regional.studio import session
+
     s = _session(tmp_path, "bad")
+    # A run that fails: its one line on the page, and the studio takes the next job.
+    def fails(**kwargs):
+        raise ConfigError("system.localization.timestep must be in [0, 999], got 1200\n(more detail)")
+
+    monkeypatch.setattr(session, "localize", fails)
+    assert s.select_region(PROMPT) is None and s.wait(60)
+    assert s.message == "Select region failed: system.localization.timestep must be in [0, 999], got 1200"
+    assert not s.busy and s.localized is None
+    monkeypatch.undo()
     assert "type an instruction first" in s.select_region("   ")
     assert "press Select region first" in s.start_edit(PROMPT)
     assert "no edit is running" in s.stop()
