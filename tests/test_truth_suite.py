@@ -212,6 +212,29 @@ def test_localize_only_ends_every_run_after_localization(tmp_path, monkeypatch):
     assert seen["overrides"] == ["seed=3", "system.stop_after=localize"] == ["seed=3", cli.LOCALIZE_ONLY]
 
 
+def test_a_localize_only_report_gives_each_cases_localization_from_both_masks_and_only_its_targets(capsys):
+    """A localize-only run has no edit to judge: its report lists each case's IoU, precision and
+    recall from the relevance maps and from exact 2D masks, and holds it to the localization's
+    targets alone (median IoU, median IoU from exact masks, every case's recall)."""
+    def rec(i, iou, precision, recall, exact):
+        return {"id": f"c{i}", "kind": "recolor_small", "scene": "synthetic:1", "gain": 0.0, "stopped": "stop_after=localize",
+                "mask_iou": iou, "mask_precision": precision, "mask_recall": recall, "mask_iou_exact_masks": exact,
+                "mask_precision_exact_masks": exact, "mask_recall_exact_masks": 1.0}
+
+    payload = {"seed": 5, "settings": {"budget": ["system.refine.cycles=3", cli.LOCALIZE_ONLY]},
+               "records": [rec(1, 0.92, 0.93, 0.99, 0.97), rec(2, 0.5, 0.9, 0.52, 0.96), rec(3, 0.95, 0.96, 0.99, 0.94)]}
+    result = {name: (met, bad) for name, met, _, bad in report.print_report(payload)}
+    assert result == {"median mask IoU >= 0.9": (True, []), "median mask IoU from exact 2D masks >= 0.95": (True, []),
+                      "mask recall >= 0.9, every case": (False, ["c2"])}
+    out = capsys.readouterr().out
+    assert "| c2 | recolor_small | synthetic:1 | 0.50 | 0.90 | 0.52 | 0.96 | 0.96 | 1.00 |" in out
+    assert "gain dB" not in out  # no edit, no gain column
+    # A run with edits is held to the localization's targets too.
+    edited = report.targets([{**rec(1, 0.92, 0.93, 0.99, 0.9), "stopped": None, "psnr_outside_vs_true_edit": 60.0,
+                              "psnr_unedited": 60.0, "source_deleted": 0, "gaussians_added": 0, "region_gaussians": 100}])
+    assert ("mask recall >= 0.9, every case", True) in [(name, met) for name, met, _, _ in edited]
+
+
 # ------------------------------------------------------------------------------------- whole parts
 def test_whole_part_cases_follow_the_draw_and_leave_its_cases_as_drawn(capsys):
     plain = truth_cases.draw(SEED, 24)

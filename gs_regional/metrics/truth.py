@@ -57,10 +57,11 @@ class TruthScoring:
                      views: Optional[Sequence] = None, relift: Optional[Callable[[List[torch.Tensor]], torch.Tensor]] = None) -> dict:
         """The localized `selection` (rows of the source) against the true region: mask IoU,
         precision, recall. After a lift also: the IoU over the Gaussians its views see (`seen`: each
-        one's rendering weight over them, in pixels; no localizer can find the others), and the IoU
-        that the same lift (`relift`: 2D masks -> selected rows of `model`) makes of exact 2D masks,
-        the true region's own render from the views' pixel weights (`views`): what the views'
-        resolution allows, apart from the relevance maps' errors."""
+        one's rendering weight over them, in pixels; no localizer can find the others), and the
+        IoU, precision and recall that the same lift (`relift`: 2D masks -> selected rows of `model`)
+        makes of exact 2D masks (`..._exact_masks`), the true region's own render from the views'
+        pixel weights (`views`): what the views' resolution allows, apart from the relevance maps'
+        errors."""
         truth = self.gt.region.cpu()
         out = dict(mask_metrics(selection.cpu(), truth))
         if seen is None:
@@ -69,7 +70,8 @@ class TruthScoring:
         out["mask_iou_seen"] = mask_metrics(selection.cpu()[seen], truth[seen])["mask_iou"]
         out["region_unseen"] = int((truth & ~seen).sum())
         exact = [v.splat(truth.to(self.device()).float()[:, None])[..., 0].clamp(0, 1) > 0.5 for v in views]
-        out["mask_iou_exact_masks"] = mask_metrics(rows.source_rows(model, relift(exact), n_source).cpu(), truth)["mask_iou"]
+        from_exact = mask_metrics(rows.source_rows(model, relift(exact), n_source).cpu(), truth)
+        out.update({f"{key}_exact_masks": value for key, value in from_exact.items()})
         return out
 
     @torch.no_grad()

@@ -28,10 +28,14 @@ NATIVE_SHARE = 0.25  # synthetic large recolours / larger additions drawn as the
 MIN_REGION_TO_ADDED = 1.0  # an addition's region holds at least the object's own Gaussian count
 
 # Kept in every record; a key metrics.json lacks (e.g. mask_iou_seen of an older run) is None.
+# The override of a localize-only run (--localize-only): every run ends after localization.
+LOCALIZE_ONLY = "system.stop_after=localize"
+
 METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited",
-    "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall", "view_agreement",
+    "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall",
+    "mask_precision_exact_masks", "mask_recall_exact_masks", "view_agreement",
     "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
     "stopped", "warnings", "count_selected", "count_recolour_declined", "count_recolour_taken", "count_recolour_distinct",

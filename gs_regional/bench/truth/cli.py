@@ -82,13 +82,12 @@ import os
 import random
 
 from gs_regional.bench.launching import ROOT
-from gs_regional.bench.truth.cases import JSON_NAME, PNG_NAME, draw
+from gs_regional.bench.truth.cases import LOCALIZE_ONLY, JSON_NAME, PNG_NAME, draw
 from gs_regional.bench.truth.compare import compare_report, load_payload
 from gs_regional.bench.truth.report import chart, print_report
 from gs_regional.bench.truth.run import resolve_only, run_suite
 
 # The override of a run that ends after localization (and writes its metrics.json).
-LOCALIZE_ONLY = "system.stop_after=localize"
 
 
 def main(argv=None) -> int:

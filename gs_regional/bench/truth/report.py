@@ -6,7 +6,7 @@ import statistics
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from gs_regional.bench import sweeps
-from gs_regional.bench.truth.cases import KINDS, PART_KINDS, gain, spread
+from gs_regional.bench.truth.cases import KINDS, LOCALIZE_ONLY, PART_KINDS, gain, spread
 
 def _ratio_added(r: dict) -> Optional[float]:
     if r.get("gaussians_added") is None:
@@ -19,9 +19,15 @@ def _ratio_added(r: dict) -> Optional[float]:
 MET_WORDS = {True: "ok", False: "FAIL", None: "n/a"}
 
 
-def targets(records: Sequence[dict]) -> List[Tuple[str, Optional[bool], str, List[str]]]:
+def localize_only(payload: dict) -> bool:
+    """Whether every run of `payload` ended after localization (--localize-only)."""
+    return LOCALIZE_ONLY in (payload.get("settings") or {}).get("budget", [])
+
+
+def targets(records: Sequence[dict], localization_only: bool = False) -> List[Tuple[str, Optional[bool], str, List[str]]]:
     """(target, met, the figure, failing case ids) of each target; met is None where no case is of
-    the kind it is about."""
+    the kind it is about. `localization_only`: the localization's targets alone (runs that ended
+    after localization have no edit to judge)."""
     ok = [r for r in records if not r.get("error")]
     failed_runs = [r["id"] for r in records if r.get("error")]
 
@@ -46,6 +52,13 @@ def targets(records: Sequence[dict]) -> List[Tuple[str, Optional[bool], str, Lis
         bad = [r["id"] for r in part_recolours if r.get("error") or g(r) < limit]
         return (name, not bad, f"{len(part_recolours) - len(bad)}/{len(part_recolours)} cases", bad)
 
+    localization = [
+        median_of("median mask IoU >= 0.9", [r["mask_iou"] for r in ok], 0.9),
+        median_of("median mask IoU from exact 2D masks >= 0.95", [r.get("mask_iou_exact_masks") for r in ok], 0.95),
+        per_case("mask recall >= 0.9, every case", lambda r: (r.get("mask_recall") or 0) >= 0.9),
+    ]
+    if localization_only:
+        return localization
     return [
         per_case("gain > 0 dB, every case", lambda r: g(r) > 0),
         median_of("median gain >= +6 dB", [r["gain"] for r in ok], 6.0),
@@ -54,7 +67,7 @@ def targets(records: Sequence[dict]) -> List[Tuple[str, Optional[bool], str, Lis
         per_case("outside-footprint PSNR >= 45 dB, every case", lambda r: (r["psnr_outside_vs_true_edit"] or 0) >= 45),
         median_of("median outside-footprint PSNR >= 50 dB", [r["psnr_outside_vs_true_edit"] for r in ok], 50.0),
         per_case("unedited PSNR >= 50 dB, every case", lambda r: (r["psnr_unedited"] or 0) >= 50),
-        median_of("median mask IoU >= 0.9", [r["mask_iou"] for r in ok], 0.9),
+        *localization,
         per_case("no stopped run", lambda r: not r.get("stopped")),
         per_case("no source Gaussian deleted", lambda r: r.get("source_deleted") == 0),
         per_case("Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)",
@@ -71,7 +84,10 @@ DISTRIBUTION = (
     ("unedited PSNR (dB)", lambda r: r.get("psnr_unedited")),
     ("mask IoU", lambda r: r.get("mask_iou")),
     ("mask IoU (seen)", lambda r: r.get("mask_iou_seen")),
+    ("mask precision", lambda r: r.get("mask_precision")),
+    ("mask recall", lambda r: r.get("mask_recall")),
     ("mask IoU from exact 2D masks", lambda r: r.get("mask_iou_exact_masks")),
+    ("mask recall from exact 2D masks", lambda r: r.get("mask_recall_exact_masks")),
     ("added / truth's added (adds)", lambda r: _ratio_added(r) if r["kind"].startswith("add") else None),
     ("added / region (recolours)", lambda r: _ratio_added(r) if r["kind"].startswith("recolor") else None),
     ("region / true added (adds)", lambda r: r.get("region_to_added") if r["kind"].startswith("add") else None),
@@ -115,9 +131,20 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
           f"{', quick' if payload.get('quick') else ''}; rerun this draw with --seed {payload['seed']})")
     if payload.get("left_out"):
         print("LEFT OUT: " + "; ".join(payload["left_out"]))
-    print("\n| case | kind | scene | prompt | gain dB | outside dB | unedited dB | IoU | added (truth) | s |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in records:
+    only = localize_only(payload)
+    if only:  # the localization of each case, from the relevance maps and from exact 2D masks
+        print("\nlocalization only (relevance maps | exact 2D masks):\n| case | kind | scene | IoU | precision | recall "
+              "| IoU | precision | recall |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        for r in records:
+            if not r.get("error"):
+                print(f"| {r['id']} | {r['kind']} | {r['scene']} | " + " | ".join(
+                    sweeps.fmt(r.get(f"mask_{m}{src}")) for src in ("", "_exact_masks")
+                    for m in ("iou", "precision", "recall")) + " |")
+    else:
+        print("\n| case | kind | scene | prompt | gain dB | outside dB | unedited dB | IoU | added (truth) | s |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in records if not only else []:
         head = f"| {r['id']} | {r['kind']} | {r['scene']}{' (own edit)' if r.get('native') else ''} | {r.get('prompt', '')} |"
         if r.get("error"):
             print(f"{head} failed: {r['error']} | | | | | |")
@@ -131,7 +158,7 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
               f"{sweeps.fmt(r.get('wall_seconds'))} |")
     parts = [r for r in records if r["kind"] in PART_KINDS]
     drawn = [r for r in records if r["kind"] not in PART_KINDS]
-    if parts:
+    if parts and not only:
         print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
               "| outside dB | IoU |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -152,7 +179,7 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
               "their median, the range in brackets; " + "; ".join(
                   f"{name} spread (max - min) median {statistics.median(v):.2f}, max {max(v):.2f} dB"
                   for name, v in spreads.items()))
-    result = targets(records)
+    result = targets(records, only)
     print("\ntargets" + (" (on each case's median run)" if spreads else "") + ":")
     for name, met, figure, bad in result:
         print(f"  [{MET_WORDS[met]}] {name}: {figure}" + (f"; missed by {', '.join(bad)}" if bad else ""))
