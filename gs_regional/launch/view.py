@@ -423,11 +423,16 @@ def main(argv: Sequence[str], custom_dir: Any = None) -> int:
         sys.stderr.write(f"error: {e}\n")
         return 2
     print(f"viewer of {trial.path} ready in {time.perf_counter() - started:.1f} s: {viewer.url}  (Ctrl+C stops it)", flush=True)
+    return serve_until_interrupted(viewer)
+
+
+def serve_until_interrupted(server: Any) -> int:
+    """Keep a started server (its `stop()` ends it) running until Ctrl+C; exit code 0."""
     try:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
         pass
     finally:
-        viewer.stop()
+        server.stop()
     return 0

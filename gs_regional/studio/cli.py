@@ -36,7 +36,7 @@ def main(argv: Sequence[str], custom_dir: Any = None) -> int:
     from gs_regional.api import _config_path
     from gs_regional.launch.errors import is_user_error
     from gs_regional.launch.logs import setup_logging
-    from gs_regional.launch.view import viewer_missing
+    from gs_regional.launch.view import serve_until_interrupted, viewer_missing
 
     try:
         args, extra = build_parser().parse_known_args(list(argv))
@@ -68,11 +68,4 @@ def main(argv: Sequence[str], custom_dir: Any = None) -> int:
         sys.stderr.write(f"error: {e}\n")
         return 2
     print(f"studio of {config} ready in {time.perf_counter() - started:.1f} s: {studio.url}  (Ctrl+C stops it)", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        studio.stop()
-    return 0
+    return serve_until_interrupted(studio)
