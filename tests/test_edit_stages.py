@@ -7,7 +7,7 @@ import torch
 from gs_regional.data.cameras import Camera
 from gs_regional.stages.initialize import InitConfig, new_gaussians_from_depth, unproject
 from gs_regional.stages.localize import expand_selection, mask_agreement
-from gs_regional.stages.views import camera_path, central_view, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
+from gs_regional.stages.views import camera_path, frontier_view, nearest_cameras, order_by_azimuth, spread_subset
 from gs_regional.metrics.region import mask_metrics
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate
@@ -59,27 +59,6 @@ def test_frontier_cycles_cover_more_views_than_random_ones():
     randoms = [covered(lambda edited, gen: edited[int(torch.randint(len(edited), (1,), generator=gen.manual_seed(s)))])
                for s in range(20)]
     assert max(randoms) <= 9 and sum(randoms) / len(randoms) < 8
-
-
-def test_the_first_view_is_the_middle_of_the_views_that_see_the_region():
-    """Known answer: on a frontal arc of 12 cameras the region shows about as large in every view,
-    the largest by a few pixels at the arc's end (a side view): the first view is the arc's middle,
-    from where the cycles spread both ways (the largest area, the paper's argmax, is the end).
-    Views showing the region far smaller are no candidates; one that cannot be initialized from
-    (area < 0) never is."""
-    cams, views = ring(12), list(range(12))
-    areas = torch.full((12,), 370.0)
-    areas[11] = 382.0
-    assert int(torch.argmax(areas)) == 11 and central_view(cams, views, areas) in (5, 6)
-    # Only the right half shows the region well: the middle of those.
-    areas = torch.tensor([10.0] * 6 + [300.0, 320.0, 340.0, 360.0, 380.0, 370.0])
-    assert central_view(cams, views, areas) in (8, 9)
-    # The middle views cannot be initialized from: the nearest one that can.
-    areas = torch.full((12,), 370.0)
-    areas[4:8] = -1.0
-    assert central_view(cams, views, areas) in (3, 8)
-    # Nothing shows the region: the plain argmax (the first view's own checks decide then).
-    assert central_view(cams, views, torch.zeros(12)) == 0
 
 
 def test_camera_path_passes_through_keyframes_and_azimuth_order():

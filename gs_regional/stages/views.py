@@ -29,31 +29,6 @@ def nearest_cameras(cameras: Sequence[Camera], center_index: int, m: int, among:
     return [others[j] for j in order[:m]]
 
 
-# The first view is the most central of the views whose 2D masks reach this share of the largest:
-# their areas differ by a few pixels between a side view and a frontal one, and an edit that starts
-# at the end of a frontal arc of cameras spreads one way only, never reaching the far side (the
-# demo's moustache, drawn from one side, never reached the front).
-NEAR_LARGEST_AREA = 0.8
-
-
-def central_view(cameras: Sequence[Camera], views: Sequence[int], areas: torch.Tensor,
-                 share: float = NEAR_LARGEST_AREA) -> int:
-    """Of `views` whose `areas` (how much of the region each shows; < 0: not a candidate) reach
-    `share` of the largest, the one whose camera centre is nearest the area-weighted mean centre of
-    all the views that show the region: the middle of the cameras that see it, from where the
-    refinement cycles spread both ways."""
-    areas = areas.detach().float().cpu()
-    best = float(areas.max())
-    shown = areas > 0
-    if best <= 0:
-        return views[int(torch.argmax(areas))]
-    centres = torch.stack([cameras[v].center.float().cpu() for v in views])
-    mean = (areas.clamp_min(0)[:, None] * centres).sum(0) / areas.clamp_min(0).sum()
-    candidates = (areas >= share * best) & shown
-    distance = torch.where(candidates, (centres - mean).norm(dim=1), torch.full_like(areas, float("inf")))
-    return views[int(torch.argmin(distance))]
-
-
 def frontier_view(cameras: Sequence[Camera], edited: Sequence[int], m: int, among: Sequence[int],
                   generator: torch.Generator = None) -> int:
     """The edited view whose `m` nearest cameras of `among` include the most views not edited yet:

@@ -21,7 +21,7 @@ from gs_regional.stages.localize import (
 from gs_regional.stages.prune import prune_useless_added
 from gs_regional.stages.state import EditState
 from gs_regional.stages.strategies import EditStrategy, RefineConfig, choose_strategy
-from gs_regional.stages.views import central_view, cycle_views, spread_subset
+from gs_regional.stages.views import cycle_views, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.utils.image import dilate
@@ -223,7 +223,7 @@ class RegionalEdit(EditSystemBase):
         masks2d = [localized[u] if s.masks2d is None else s.masks2d[k].bool().to(self.device) for k, u in enumerate(views)]
         whole = bool(g.mask.all())
         first = choose_first_view(
-            views, areas, localized, masks2d, central_view(self.scene.cameras, views, areas), self.full_edit,
+            views, areas, localized, masks2d, views[int(torch.argmax(areas))], self.full_edit,
             lambda u, out: check_edit(u, out, self.source_renders[u], localized[u], self.source_alpha(u),
                                       self.source_render(u)["depth"], global_edit=whole),
             cfg.localization.min_edit_coverage)
