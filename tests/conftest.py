@@ -57,7 +57,7 @@ def small_demo_run(tmp_path_factory):
 # processes' ends; a file not named here runs after them.
 LONGEST_FILES = (
     "test_regional_edit.py", "test_reliability.py", "test_float_stability.py", "test_parallel.py",
-    "test_truth_suite.py", "test_bench_pipeline.py", "test_composite.py", "test_workflow_face.py",
+    "test_truth_suite.py", "test_studio.py", "test_bench_pipeline.py", "test_composite.py", "test_workflow_face.py",
     "test_bench_scale.py", "test_pareto.py", "test_formats.py", "test_gpu_check.py", "test_launch_console.py",
     "test_splat_truth.py", "test_reconstruct.py", "test_stability.py", "test_compactness.py",
     "test_device_and_batching.py", "test_viewer.py", "test_initialize_shape.py", "test_launch.py",
