@@ -12,6 +12,7 @@ import torch
 
 from gs_regional.data.cameras import Camera
 from gs_regional.registry import find
+from gs_regional.stages.localize import LOCALIZATION_FILE
 
 _renderers: Dict[str, object] = {}
 
@@ -137,7 +138,6 @@ def edit(
 # caller's overrides come after these.
 LOCALIZE_ONLY = {"system.stop_after": "localize", "system.export.splat": False, "system.export.compressed_ply": False,
                  "system.eval.turntable_frames": 1, "system.eval.max_test_views": 1}
-LOCALIZATION_FILE = "localization.npz"
 
 
 @dataclass

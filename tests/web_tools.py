@@ -13,12 +13,9 @@ from pathlib import Path
 
 import pytest
 
-NPM_TOOLS = Path(__file__).parent / "npm"  # package.json + lock; installed into npm/node_modules (ignored by git)
+from gs_regional.studio.tour import CHROMIUM_ARGS  # software WebGL, no calls to Google's hosts
 
-# No GPU here: WebGL through Chromium's software renderer (SwiftShader). The background-networking
-# flags keep Chromium from calling Google's hosts on a machine with a closed network.
-CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--no-sandbox",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+NPM_TOOLS = Path(__file__).parent / "npm"  # package.json + lock; installed into npm/node_modules (ignored by git)
 
 
 def npm_tool(relative: str) -> Path:

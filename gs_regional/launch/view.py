@@ -390,12 +390,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def viewer_missing() -> Optional[str]:
-    """None if the `viewer` extra imports, else the one-line reason."""
+def viewer_missing(what: str = "the viewer") -> Optional[str]:
+    """None if the `viewer` extra imports, else the one-line reason (`what` needs it)."""
     try:
         import viser  # noqa: F401
     except ImportError as e:
-        return f"the viewer needs the 'viewer' extra ({VIEWER_EXTRA_HINT}): {e}"
+        return f"{what} needs the 'viewer' extra ({VIEWER_EXTRA_HINT}): {e}"
     return None
 
 

@@ -27,6 +27,11 @@ EDGE_COLOUR_RATIO = 0.5
 AGREEMENT_TOLERANCE_PX = 1
 
 
+# The trial's save/ file of a localization's evidence (selection, lift scores, neighbourhoods, 2D
+# masks), written by the regional edit and read by gs_regional.localize and the studio.
+LOCALIZATION_FILE = "localization.npz"
+
+
 @dataclass
 class LocalizeConfig:
     """`system.localization` (§3.1; docs/method.md "Localize")."""

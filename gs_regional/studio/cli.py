@@ -42,9 +42,9 @@ def main(argv: Sequence[str], custom_dir: Any = None) -> int:
         args, extra = build_parser().parse_known_args(list(argv))
     except SystemExit as e:
         return int(e.code or 0)
-    missing = viewer_missing()
+    missing = viewer_missing("the studio")
     if missing:
-        sys.stderr.write(f"error: {missing.replace('the viewer needs', 'the studio needs')}\n")
+        sys.stderr.write(f"error: {missing}\n")
         return 2
     bad = [x for x in extra if "=" not in x]
     if bad:

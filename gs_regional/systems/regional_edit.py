@@ -16,7 +16,7 @@ from gs_regional.stages.change import recoloured_fraction
 from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
 from gs_regional.stages.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
 from gs_regional.stages.localize import (
-    LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
+    LOCALIZATION_FILE, LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
 )
 from gs_regional.stages.prune import prune_useless_added
 from gs_regional.stages.state import EditState
@@ -196,7 +196,7 @@ class RegionalEdit(EditSystemBase):
                        expand_radius=np.float64(self.cfg.localization.expand_radius * self.scene.extent))
             if loc.lifted["neighbourhood"] is not None:
                 out["neighbourhood"] = loc.lifted["neighbourhood"].to(torch.int32).cpu().numpy()
-        np.savez(self.save_path("localization.npz"), **out)
+        np.savez(self.save_path(LOCALIZATION_FILE), **out)
 
     # ----- stage 2 -------------------------------------------------------------------------------
     def rendered_mask(self, index: int) -> torch.Tensor:
