@@ -575,3 +575,29 @@ def test_the_recolour_gate_takes_a_part_a_few_pixels_across_and_declines_a_large
     # An edit that recolours nothing (every blend 0) lets nothing through: the reference has a floor.
     zero = torch.zeros(32 * 32)
     assert not recoloured(zero, torch.ones_like(zero), torch.ones_like(zero, dtype=torch.bool), 0.5, 0.99).any()
+
+
+def test_the_recolour_gate_takes_a_part_recoloured_strongly_in_some_views_and_faintly_in_others():
+    """Known answer: one part seen in three views, fully recoloured in the first (a full edit), to
+    a third of the colour in the second (a partial denoise from a low timestep of a view whose
+    render did not show the edit yet: lerp(input, edit, 0.33)) and barely seen in the third (a
+    twentieth of the weight). The gate judges where the edit's colour goes, not how strong it is,
+    so a faint view does not drag the part under `min_edit_blend`: every Gaussian of the part is
+    taken, the bleed beside it declined."""
+    from gs_regional.stages.change import edit_blend
+    from gs_regional.stages.composite import recoloured
+
+    source, edited, part, ring = _recolour_views(16)
+    seen = (edited - source).abs().amax(-1).reshape(-1) > 0.02
+
+    def gate(*views):
+        num, den = torch.zeros(32 * 32), torch.zeros(32 * 32)
+        for view, weight in views:
+            num += weight * gaussian_blur(edit_blend(view, source).clamp(0, 1)[None], 1.5)[0].reshape(-1)
+            den += weight
+        return recoloured(num, den, seen, 0.5, 0.99).reshape(32, 32)
+
+    takes = gate((edited, 1.0), (source + 0.33 * (edited - source), 1.0), (edited, 0.05))
+    assert torch.equal(takes, gate((edited, 1.0), (edited, 1.0), (edited, 0.05)))  # as if both were strong
+    assert takes[part & ~dilate(~part, 1)].all() and takes[part].float().mean() > 0.95
+    assert not takes[ring & ~dilate(part, 1)].any()

@@ -325,6 +325,38 @@ def test_a_named_part_case_is_exactly_the_parts_gaussians(tmp_path):
             assert len(gt.edited) == len(gt.source)
 
 
+def test_an_object_is_put_on_the_side_of_a_part_whose_top_is_covered(tmp_path):
+    """The figure of scene seed 11503 seen from its front: the body's front is covered (no landing
+    point from there is the body's), so a ball on the body rests on its flank: the truth's sphere
+    lies across the front axis, touches the body (its nearest source Gaussian is the body's) and
+    its count is the case's. (Draw 639122's c27 was left out for this.)"""
+    import torch
+
+    from gs_regional.bench.truth import scenes
+    from gs_regional.sim.scene import part_masks
+    from gs_regional.sim.splat_truth import SplatTruthDataModule
+
+    subject = scenes.synthetic_subject(str(tmp_path), 11503, 8, 32)
+    subject.parts_dir = str(tmp_path / "parts")
+    case = {"id": "c27", "scene": "synthetic:11503", "kind": "add_part", "run_seed": 3, "color": [0.1, 0.8, 0.2],
+            "color_name": "green", "native": False, "select": "part", "part": "body", "add_radius": 0.25,
+            "add_count": 120}
+    _, overrides, facts = scenes.resolve(case, subject, truth_cases.settings(True))
+    data = {o.split("=", 1)[0][5:]: json.loads(o.split("=", 1)[1]) if o.split("=", 1)[1][:1] in "[\"" else o.split("=", 1)[1]
+            for o in overrides if o.startswith("data.")}
+    side = torch.tensor(data["add_direction"])
+    assert abs(float(side @ subject.add_up)) < 1e-6 and abs(float(side.norm()) - 1) < 1e-6
+    dm = SplatTruthDataModule(data)
+    dm.setup()
+    gt = dm.scene.ground_truth
+    n = len(gt.source)
+    assert len(gt.edited) - n == 120
+    ball = gt.edited.means.detach()[n:]
+    nearest = torch.cdist(ball.mean(0, keepdim=True), gt.source.means.detach()).argmin()
+    assert bool(part_masks(11503)["body"][nearest])
+    assert float((ball.mean(0) - subject.center) @ side) > 0  # on that side of the figure
+
+
 def test_a_quick_whole_part_case_runs_and_is_reported_apart(tmp_path, capsys):
     (case,) = [c for c in truth_cases.draw(SEED, 3, quick=True, parts=2) if c["kind"] == "recolor_part"]
     assert cli.main(["--quick", "--seed", str(SEED), "--parts", "2", "--only", case["id"], "--out", str(tmp_path)]) == 0

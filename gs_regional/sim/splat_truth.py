@@ -12,7 +12,8 @@ around the splat, and builds a known edit from the splat itself, as a `GroundTru
            segment or a named part of the procedural scene).
            `related`: what lies just outside the part (the band below it / a shell around it).
   add      a new compact object (a "cherry": a sphere of `add_count` small, opaque, flat Gaussians
-           of one colour, shaded from above) resting on the surface seen from `up` at `anchor`.
+           of one colour, shaded from above) resting on the surface seen from `up` at `anchor`
+           (from `add_direction` when given: on a part whose top is covered, on its side).
            `region` = the splat's Gaussians within `region_radius` sphere radii of it (the part
            it sits on, what an editor's mask selects); `new_region` = those and the new rows.
            `related`: the shell out to twice that radius. With `region_file` the region is
@@ -380,6 +381,7 @@ class SplatTruthDataModule(SceneDataModuleBase):
         add_radius: float = 0.12  # add: the sphere's radius
         add_count: int = 400  # add: Gaussians on the sphere
         add_sink: float = 0.25  # add: fraction of its radius the sphere sinks into the surface
+        add_direction: Optional[List[float]] = None  # add: the side of the surface it rests on (None = up)
         region_radius: float = 2.0  # add: region = splat Gaussians within this many sphere radii of it
 
     def __init__(self, cfg=None) -> None:
@@ -431,8 +433,9 @@ class SplatTruthDataModule(SceneDataModuleBase):
             edited, new_region = recolor(source, region, color), region.clone()
         else:
             r = c.add_radius * radius
-            top = surface_point(source, anchor, up, width=r)
-            sphere_center = top + (1 - c.add_sink) * r * up
+            side = up if c.add_direction is None else _unit(c.add_direction, "data.add_direction")
+            top = surface_point(source, anchor, side, width=r)
+            sphere_center = top + (1 - c.add_sink) * r * side
             added = sphere_gaussians(sphere_center, r, c.add_count, color, up, c.seed, source.sh_degree)
             region, related = select_ball(source, sphere_center, c.region_radius * r)
             if c.region_file:  # the whole part the object rests on

@@ -317,31 +317,35 @@ _PART_CANDIDATES = 64  # an addition's resting point is looked for under this ma
 
 
 def _part_anchor(subject: Subject, region, r: float):
-    """(through, landing point) of an object resting on the part seen from `add_up`: under the
-    part's Gaussians highest along it (nearest the subject's axis first among equals), the first
-    whose landing point's nearest Gaussian is the part's."""
+    """(through, landing point, direction) of an object resting on the part: seen from `add_up`
+    when it can, else from the side (the four directions across `add_up`: a body whose top the
+    head covers gets the object on its flank). Per direction, under the part's Gaussians furthest
+    along it (nearest the subject's axis first among equals), the first whose landing point's
+    nearest Gaussian is the part's."""
     import torch
 
     from gs_regional.config import ConfigError
-    from gs_regional.sim.splat_truth import OPAQUE, surface_point
+    from gs_regional.sim.splat_truth import OPAQUE, _horizontal_basis, surface_point
 
     means = subject.model.means
-    up = subject.add_up
     rows = torch.nonzero(region & (subject.model.opacities > OPAQUE)).flatten()
     if not len(rows):
         rows = torch.nonzero(region).flatten()
     rel = means[rows] - subject.center
-    height = rel @ up
-    lateral = (rel - height[:, None] * up).norm(dim=-1)
-    for i in rows[torch.argsort(-(height - 0.3 * lateral))[:_PART_CANDIDATES]].tolist():
-        through = means[i]
-        try:
-            p = surface_point(subject.model, through, up, r)
-        except ConfigError:
-            continue
-        if bool(region[int((means - p).norm(dim=-1).argmin())]):
-            return through, p
-    raise ValueError(f"no point of the part is seen from above ({subject.name})")
+    up = subject.add_up
+    e1, e2 = _horizontal_basis(up)
+    for direction in (up, e1, -e1, e2, -e2):
+        height = rel @ direction
+        lateral = (rel - height[:, None] * direction).norm(dim=-1)
+        for i in rows[torch.argsort(-(height - 0.3 * lateral))[:_PART_CANDIDATES]].tolist():
+            through = means[i]
+            try:
+                p = surface_point(subject.model, through, direction, r)
+            except ConfigError:
+                continue
+            if bool(region[int((means - p).norm(dim=-1).argmin())]):
+                return through, p, direction
+    raise ValueError(f"no point of the part is seen from above or from the side ({subject.name})")
 
 
 def _resolve_part(case: dict, subject: Subject) -> Tuple[str, List[str], dict]:
@@ -351,7 +355,7 @@ def _resolve_part(case: dict, subject: Subject) -> Tuple[str, List[str], dict]:
 
     r = case.get("add_radius", 0.0) * subject.radius
 
-    def restable(region) -> bool:  # an addition needs a point of the part seen from its `add_up`
+    def restable(region) -> bool:  # an addition needs a point of the part to rest on
         try:
             _part_anchor(subject, region, r)
             return True
@@ -369,9 +373,11 @@ def _resolve_part(case: dict, subject: Subject) -> Tuple[str, List[str], dict]:
     if case["kind"] == "recolor_part":
         data.update(edit="recolor", select="file", up=subject.up.tolist())
     else:
-        through, p = _part_anchor(subject, region, r)
+        through, p, direction = _part_anchor(subject, region, r)
         data.update(edit="add", up=subject.add_up.tolist(), anchor=subject.to_object(through),
                     add_radius=round(r / subject.obj_radius, 5), add_count=case["add_count"])
+        if not torch.equal(direction, subject.add_up):  # on the part's side
+            data["add_direction"] = [round(float(v), 6) for v in direction]
         facts["anchor_world"] = [round(float(v), 4) for v in p]
     data["prompt"] = _prompt(case, part)
     stats, _ = _truth_stats(data, visibility=subject.up)
