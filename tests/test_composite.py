@@ -11,7 +11,7 @@ from gs_regional.stages.composite import composite_target
 from gs_regional.stages.localize import render_selection
 from gs_regional.metrics.image import psnr
 from gs_regional.registry import find
-from gs_regional.sim.scene import make_cameras, make_edit
+from gs_regional.sim.scene import make_cameras, make_edit, make_scene
 from gs_regional.utils.image import dilate, gaussian_blur
 
 VIEWS = [4, 10, 17]  # a side, the frontal and another view
@@ -601,3 +601,44 @@ def test_the_recolour_gate_takes_a_part_recoloured_strongly_in_some_views_and_fa
     assert torch.equal(takes, gate((edited, 1.0), (edited, 1.0), (edited, 0.05)))  # as if both were strong
     assert takes[part & ~dilate(~part, 1)].all() and takes[part].float().mean() > 0.95
     assert not takes[ring & ~dilate(part, 1)].any()
+
+
+def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypatch):
+    """Known answer on the figure's 12 cameras (an arc of +-100 degrees at two heights): the body,
+    seen from the whole arc, was edited so far in the 3 views at one end of the low ring. The next
+    cycle starts at a view on the arc's other half, where the body's Gaussians those views never saw
+    cover the most, and the views it edits see most of them. Once the edited views have seen the
+    whole selection, or when what they have not seen covers under UNEDITED_MIN_AREA of every view
+    (a thin part's hidden side), the schedule's own views come back."""
+    from types import SimpleNamespace
+
+    from gs_regional.sim.scene import part_masks
+    from gs_regional.stages import strategies
+    from gs_regional.stages.localize import SEEN_MIN_WEIGHT
+
+    model, _, _ = make_scene(0)
+    cams, _ = make_cameras(12, 32, 32)
+    renderer = find("torch-rasterizer")()
+    body = part_masks(0)["body"]
+    weights = {v: renderer.pixel_weights(model, cams[v]).gather(torch.ones(32, 32)) for v in range(12)}
+    system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
+                             scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))),
+                             state=SimpleNamespace(source_selection=body))
+    ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
+    strategy = strategies.Recolour(strategies.RefineConfig(m=3), ablation)
+    edited = [0, 1, 2]  # the low ring's first three cameras, azimuth -100 to about -45 degrees
+    seen = sum(weights[v] for v in edited)
+    strategy.blend_votes = torch.stack([seen, seen])
+    frontal, near = strategy.cycle_views(system, 1, 2, [1, 3, 0])
+    unseen = body & (seen < SEEN_MIN_WEIGHT)
+    assert int(unseen.sum()) > 0.2 * int(body.sum())
+    assert frontal % 6 >= 3 and near == strategies.nearest_cameras(cams, frontal, 3, range(12)), (frontal, near)
+    covered = sum(weights[v] for v in [frontal, *near])
+    assert float((covered[unseen] >= SEEN_MIN_WEIGHT).float().mean()) > 0.5
+    assert strategy.cycle_views(system, 0, 2, [1, 3, 0]) == (2, [1, 3, 0])  # the first cycle: its own
+    everything = sum(weights.values())
+    strategy.blend_votes = torch.stack([everything, everything])
+    assert strategy.cycle_views(system, 1, 2, [1, 3, 0]) == (2, [1, 3, 0])
+    strategy.blend_votes = torch.stack([seen, seen])
+    monkeypatch.setattr(strategies, "UNEDITED_MIN_AREA", 0.5)
+    assert strategy.cycle_views(system, 1, 2, [1, 3, 0]) == (2, [1, 3, 0])

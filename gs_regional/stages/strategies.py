@@ -5,6 +5,8 @@ Gaussians (from depth, by densification) and leaves the source's where they are.
 finish, and asks the strategy chosen after initialization (`choose_strategy`):
 
 * `start_timestep(cycle)`: where each cycle's partial edits start from;
+* `cycle_views(system, cycle, frontal, near)`: the views a cycle edits (a recolour's later cycles
+  go where the part is still unedited);
 * `first_view_is_target(m)`: whether the first cycle trains on the first view's full edit;
 * `target(system, view, edited)`: the view's training target (the composite);
 * `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
@@ -15,8 +17,9 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Dict, List, Optional
+from typing import Any, ClassVar, Dict, List, Optional, Tuple
 
 import torch
 
@@ -28,7 +31,10 @@ from gs_regional.stages.composite import (
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection
+from gs_regional.stages.views import nearest_cameras, spread_subset
 from gs_regional.utils.sh import sh_to_rgb
+
+log = logging.getLogger(__name__)
 
 SHAPE_FREE_PARAMS = ("sh_dc", "sh_rest")  # what a recolour trains (no change of shape found)
 # A recolour trains colours at this multiple of their learning rate: 3DGS's rates are made for 30k
@@ -47,6 +53,14 @@ GATE_REFERENCE_QUANTILE = 0.99
 # the Gaussians recoloured by more is a part of its own (eyes in a recoloured head) and keeps its
 # source colours.
 DISTINCT_PART_BLEND = 0.85
+
+# A later cycle of a recolour starts at the training view in which the selected Gaussians no
+# edited view has seen yet cover the most, when they cover at least this fraction of its pixels:
+# a part seen from every side (a donut's dough) was otherwise edited from one side only. Below it
+# (a thin part's hidden side, seen edge-on) the edit's jitter there spills onto the neighbours more
+# than it adds.
+UNEDITED_MIN_AREA = 0.04
+UNEDITED_CANDIDATES = 32  # training views looked at (spread over them)
 
 # Keys that became named constants: {key: (constant, module)}.
 _CONSTANTS = {
@@ -166,6 +180,11 @@ class EditStrategy:
     def first_view_is_target(self, neighbours: int) -> bool:
         return True
 
+    def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
+        """(frontal view, its neighbours) that refinement cycle `cycle` edits, given the schedule's
+        (`stages.views.cycle_views`)."""
+        return frontal, near
+
     def composite(self, system, index: int, edited: torch.Tensor, added: Optional[torch.Tensor]) -> torch.Tensor:
         if not (self.ablation.composite and self.regional):
             return edited
@@ -206,6 +225,33 @@ class Recolour(EditStrategy):
     def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None) -> None:
         super().__init__(refine, ablation, None)
         self.blend_votes: Optional[torch.Tensor] = None  # (2, N) the gate's sums over the edited views
+
+    @torch.no_grad()
+    def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
+        """A later cycle goes where the part is still unedited: its frontal view is the training
+        view in which the selected Gaussians no edited view has seen (the gate's votes count what
+        the edited views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels, and its
+        neighbours are the nearest cameras. Otherwise the schedule's views."""
+        if cycle == 0 or self.blend_votes is None or not self.regional:
+            return frontal, near
+        g, scene = system.geometry, system.scene
+        src = g.source_index
+        selected = (src >= 0) & system.state.source_selection.to(system.device)[src.clamp_min(0)]
+        unseen = (selected & (self.blend_votes[1] < SEEN_MIN_WEIGHT)).float()
+        if not bool(unseen.any()):
+            return frontal, near
+        best, most = None, 0.0
+        for v in spread_subset(scene.train_indices, UNEDITED_CANDIDATES):
+            cam = scene.cameras[v].to(system.device)
+            area = float(system.renderer.pixel_weights(g, cam).splat(unseen[:, None]).sum()) / (cam.width * cam.height)
+            if area >= UNEDITED_MIN_AREA and area > most:
+                best, most = v, area
+        if best is None:
+            return frontal, near
+        system.counts["unedited_cycles"] = system.counts.get("unedited_cycles", 0) + 1
+        log.info("refine %d: the selected Gaussians no edited view has seen cover %.0f%% of view %d; the cycle "
+                 "starts there", cycle + 1, 100 * most, best)
+        return best, nearest_cameras(scene.cameras, best, self.cfg.m, scene.train_indices)
 
     def set_trainable(self, geometry, param_groups: List[dict]) -> None:
         if self.ablation.optimize_all:

@@ -315,6 +315,7 @@ class RegionalEdit(EditSystemBase):
         self.set_stage(f"refine {cycle + 1}/{r.cycles}: editing views")
         t0 = time.perf_counter()
         frontal, near = cycle_views(scene.cameras, cycle, s.v_first, s.edited_views, r.m, scene.train_indices, cfg.seed)
+        frontal, near = self.strategy.cycle_views(self, cycle, frontal, near)
         views = [frontal] + near  # in order of distance
         full_edit_is_target = cycle == 0 and self.strategy.first_view_is_target(len(near))
         if cycle == 0 and not full_edit_is_target:
