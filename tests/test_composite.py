@@ -499,31 +499,6 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     assert distinct_parts(small, small_blend, torch.ones(45, dtype=torch.bool), 0.85, min_core_fraction=0.1)[5:].all()
 
 
-def test_the_eyes_stay_a_part_of_their_own_when_later_cycles_recolour_the_heads_edge_fully():
-    """Known answer (the head and eyes above): the first cycle's votes recolour the front fully and
-    the edge by half; later cycles edit renders that already carry the edit, so their votes
-    recolour the edge fully too, and the fully recoloured Gaussians' colours then reach from the
-    skin's shading to the dark eye rims. Judged against those, the eyes would no longer be distinct
-    and would take the edit (a head recolour at twice the steps fell from 72 to 49 dB outside its
-    footprint). Judged against the part's colours from the first cycle (`part_colours`), as the
-    recolour's gate keeps them, they stay distinct."""
-    from gs_regional.stages.composite import distinct_parts, part_colours
-
-    gen = torch.Generator().manual_seed(0)
-    skin = torch.tensor([0.62, 0.50, 0.40])
-    front = skin * (0.8 + 0.4 * torch.rand(300, 1, generator=gen))
-    edge = skin * (0.2 + 0.8 * torch.rand(200, 1, generator=gen))  # down to the dark rims round the eyes
-    eyes = 0.05 + 0.02 * torch.rand(30, 3, generator=gen)
-    colours = torch.cat([front, edge, eyes]).clamp(0, 1)
-    seen = torch.ones(530, dtype=torch.bool)
-    first = torch.cat([torch.full((300,), 0.95), 0.5 + 0.3 * torch.rand(200, generator=gen), torch.full((30,), 0.65)])
-    later = torch.cat([torch.full((500,), 0.95), torch.full((30,), 0.7)])
-    part = part_colours(colours, first, seen, 0.85)
-    assert distinct_parts(colours, later, seen, 0.85, part=part)[500:].all()
-    assert not distinct_parts(colours, later, seen, 0.85)[500:].any()  # the later votes' own core takes them in
-    assert not distinct_parts(colours, later, seen, 0.85, part=part)[:500].any()
-
-
 def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path, monkeypatch):
     """Known answer on the synthetic figure ("make his head red": the head's Gaussians turn red,
     its eyes do not): selected with the head, the eyes take about half of the edit in every edited

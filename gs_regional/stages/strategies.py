@@ -26,7 +26,7 @@ import torch
 from gs_regional.config import ConfigError, need
 from gs_regional.stages.change import NOISE_SIGMAS, edit_blend
 from gs_regional.stages.composite import (
-    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, part_colours, recoloured,
+    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured,
 )
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
@@ -225,11 +225,6 @@ class Recolour(EditStrategy):
     def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None) -> None:
         super().__init__(refine, ablation, None)
         self.blend_votes: Optional[torch.Tensor] = None  # (2, N) the gate's sums over the edited views
-        # The part's colours (median, reach; `part_colours`) from the first cycle whose edits recolour
-        # enough of it fully: later cycles edit renders that already carry the edit, and the
-        # Gaussians they recolour fully take in what the first edits spilled onto (the reach grew
-        # 0.35 -> 0.49 over a head recolour's cycles at twice the steps, and its eyes took the red).
-        self.part: Optional[Tuple[torch.Tensor, float]] = None
 
     @torch.no_grad()
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
@@ -289,11 +284,7 @@ class Recolour(EditStrategy):
         seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
         takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
         colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
-        blend = num / den.clamp_min(1e-12)
-        if self.part is None:
-            self.part = part_colours(colours, blend, seen, DISTINCT_PART_BLEND)
-        distinct = (distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=self.part) if self.part is not None
-                    else torch.zeros_like(seen))
+        distinct = distinct_parts(colours, num / den.clamp_min(1e-12), seen, DISTINCT_PART_BLEND)
         takes &= ~distinct
         system.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, system.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, system.optimizers())
@@ -309,18 +300,14 @@ class Recolour(EditStrategy):
                         "lets the edit through")
 
     def state_dict(self) -> Dict[str, Any]:
-        return {"blend_votes": None if self.blend_votes is None else self.blend_votes.cpu(),
-                "part": None if self.part is None else (self.part[0].cpu(), self.part[1])}
+        return {"blend_votes": None if self.blend_votes is None else self.blend_votes.cpu()}
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
         self.blend_votes = state.get("blend_votes")
-        self.part = state.get("part")
 
     def to(self, device) -> "Recolour":
         if self.blend_votes is not None:
             self.blend_votes = self.blend_votes.to(device)
-        if self.part is not None:
-            self.part = (self.part[0].to(device), self.part[1])
         return self
 
 
