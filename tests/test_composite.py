@@ -499,6 +499,42 @@ def test_a_part_enclosed_by_a_recolour_is_told_from_the_recoloured_parts_edge():
     assert distinct_parts(small, small_blend, torch.ones(45, dtype=torch.bool), 0.85, min_core_fraction=0.1)[5:].all()
 
 
+def test_the_eyes_stay_a_part_of_their_own_when_later_cycles_widen_the_parts_colours():
+    """Known answer (a head with eyes, its shading on two sides): the first cycle's votes recolour
+    the lit front fully; the eyes (0.05 grey) and the shaded side (0.3 away from the front's colour)
+    take part of the edit and are both distinct. Later cycles edit renders that already carry the
+    edit: they recolour the shaded side and the dark rims round the eyes fully, so the part's
+    colours reach the eyes, which this cycle's own rule no longer finds (a head recolour at twice
+    the steps lost 22 dB outside to its eyes). `still_distinct` keeps the eyes (far from the part's
+    colour) and releases the shaded side (near it), as the recolour's gate combines them."""
+    from gs_regional.stages.composite import distinct_parts, part_colours, still_distinct
+    from gs_regional.stages.strategies import DISTINCT_PART_BLEND, STILL_DISTINCT
+
+    gen = torch.Generator().manual_seed(0)
+    skin = torch.tensor([0.62, 0.50, 0.40])
+    front = skin * (0.9 + 0.2 * torch.rand(300, 1, generator=gen))
+    shaded = skin * (0.45 + 0.05 * torch.rand(150, 1, generator=gen))  # about 0.3 from the front's colour
+    rims = skin * (0.1 + 0.3 * torch.rand(100, 1, generator=gen))  # dark skin round the eyes
+    eyes = 0.05 + 0.02 * torch.rand(30, 3, generator=gen)
+    colours = torch.cat([front, shaded, rims, eyes]).clamp(0, 1)
+    seen = torch.ones(580, dtype=torch.bool)
+    eye, side = torch.arange(580) >= 550, (torch.arange(580) >= 300) & (torch.arange(580) < 450)
+
+    def judged(blend, was=None):
+        part = part_colours(colours, blend, seen, DISTINCT_PART_BLEND)
+        distinct = distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=part)
+        return distinct if was is None else distinct | still_distinct(was, colours, blend, seen, DISTINCT_PART_BLEND,
+                                                                      part, STILL_DISTINCT)
+
+    first = torch.cat([torch.full((300,), 0.95), torch.full((150,), 0.6), torch.full((100,), 0.6), torch.full((30,), 0.6)])
+    was = judged(first)
+    assert was[eye].all() and was[side].all()
+    later = torch.cat([torch.full((550,), 0.95), torch.full((30,), 0.7)])
+    assert not judged(later)[eye].any()  # this cycle's own colours reach the eyes
+    now = judged(later, was)
+    assert now[eye].all() and not now[~eye].any()
+
+
 def test_a_head_recolour_leaves_the_eyes_it_encloses_as_they_were(tmp_path, monkeypatch):
     """Known answer on the synthetic figure ("make his head red": the head's Gaussians turn red,
     its eyes do not): selected with the head, the eyes take about half of the edit in every edited

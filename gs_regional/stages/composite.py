@@ -1,7 +1,7 @@
 """§3.3: the targets of refinement: an edited view kept only where the edit is."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
@@ -31,27 +31,51 @@ def recoloured(num: torch.Tensor, den: torch.Tensor, seen: torch.Tensor, min_ble
     return seen & (num >= need * den)
 
 
+def part_colours(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor, full_blend: float,
+                 quantile: float = 0.95, min_core_fraction: float = 0.2) -> Optional[Tuple[torch.Tensor, float]]:
+    """(median colour (3,), reach) of the Gaussians a recolour recolours fully (seen, `blend` >=
+    `full_blend`): the colours of the part being recoloured, `reach` the distance from the median
+    that `quantile` of them stay within. None unless they are at least `min_core_fraction` of the
+    seen ones: a small part, mostly edge, has too few of them to stand for its colours."""
+    core = seen & (blend >= full_blend)
+    if int(core.sum()) < max(2.0, min_core_fraction * int(seen.sum())):
+        return None
+    centre = column_quantile(colours[core], 0.5)
+    reach = float(column_quantile((colours[core] - centre).norm(dim=-1)[:, None], quantile)[0])
+    return centre, reach
+
+
 def distinct_parts(colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor, full_blend: float,
                    quantile: float = 0.95, margin: float = 1.5, min_distance: float = 0.25,
-                   min_core_fraction: float = 0.2) -> torch.Tensor:
+                   min_core_fraction: float = 0.2, part: Optional[Tuple[torch.Tensor, float]] = None) -> torch.Tensor:
     """(N,) bool: Gaussians of a recolour's selection that are a part of their own, not the part
     being recoloured: seen, recoloured by less than `full_blend` (`blend`: mean edit_blend over
-    their views), and further in source colour (`colours`, (N, 3)) from the median colour of the
-    Gaussians the edit recolours fully (blend >= full_blend) than `margin` times the distance
-    `quantile` of those stay within, and at least `min_distance` (RGB in [0, 1]) from it. None
-    unless the fully recoloured Gaussians are at least `min_core_fraction` of the seen ones: a
-    small part, mostly edge, has too few of them to stand for its colours.
+    their views), and further in source colour (`colours`, (N, 3)) from the part's median colour
+    than `margin` times its reach and at least `min_distance` (RGB in [0, 1]) from it. The part's
+    colours are `part` ((median, reach), `part_colours`), or else those of the Gaussians these
+    votes recolour fully (`part_colours` with `quantile`, `min_core_fraction`; none found: no
+    Gaussian is distinct).
 
     The editor spills about half of its colour onto a small part enclosed by the edited one (eyes
     in a head), which is as much as the edited part's own edge takes; the edge shares the part's
     colours, the enclosed part does not."""
-    core = seen & (blend >= full_blend)
-    if int(core.sum()) < max(2.0, min_core_fraction * int(seen.sum())):
-        return torch.zeros_like(seen)
-    centre = column_quantile(colours[core], 0.5)
+    if part is None:
+        part = part_colours(colours, blend, seen, full_blend, quantile, min_core_fraction)
+        if part is None:
+            return torch.zeros_like(seen)
+    centre, reach = part
     distance = (colours - centre).norm(dim=-1)
-    reach = column_quantile(distance[core][:, None], quantile)[0]
-    return seen & (blend < full_blend) & (distance > max(margin * float(reach), min_distance))
+    return seen & (blend < full_blend) & (distance > max(margin * reach, min_distance))
+
+
+def still_distinct(was: torch.Tensor, colours: torch.Tensor, blend: torch.Tensor, seen: torch.Tensor,
+                   full_blend: float, part: Tuple[torch.Tensor, float], min_distance: float) -> torch.Tensor:
+    """(N,) bool: the Gaussians found a part of their own in an earlier cycle (`was`) that still are:
+    seen, recoloured by less than `full_blend`, and at least `min_distance` (RGB) from the part's
+    median colour (`part`, `part_colours` of this cycle's votes). Later cycles edit renders that
+    already carry the edit; the Gaussians they recolour fully take in the part's dark edge, and the
+    colours that stand for the part widen until an enclosed part falls inside them."""
+    return was & seen & (blend < full_blend) & ((colours - part[0]).norm(dim=-1) > min_distance)
 
 
 # An addition's target takes the edit only where a pixel takes more than half of the new object's

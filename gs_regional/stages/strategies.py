@@ -26,7 +26,7 @@ import torch
 from gs_regional.config import ConfigError, need
 from gs_regional.stages.change import NOISE_SIGMAS, edit_blend
 from gs_regional.stages.composite import (
-    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, recoloured,
+    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, part_colours, recoloured, still_distinct,
 )
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
@@ -53,6 +53,12 @@ GATE_REFERENCE_QUANTILE = 0.99
 # the Gaussians recoloured by more is a part of its own (eyes in a recoloured head) and keeps its
 # source colours.
 DISTINCT_PART_BLEND = 0.85
+
+# A Gaussian found a part of its own in an earlier cycle stays one while its colour lies this far
+# (RGB) from the part's median colour (`still_distinct`): an enclosed part (a head's eyes, 0.7-0.9
+# away) stays out of the edit when later cycles widen the part's colours; a part's other shading
+# (0.3-0.4 away), found distinct while the first cycles saw one side, is released.
+STILL_DISTINCT = 0.5
 
 # A later cycle of a recolour starts at the training view in which the selected Gaussians no
 # edited view has seen yet cover the most, when they cover at least this fraction of its pixels:
@@ -225,6 +231,7 @@ class Recolour(EditStrategy):
     def __init__(self, refine: RefineConfig, ablation: Any, densify: Optional[DensifyStrategy] = None) -> None:
         super().__init__(refine, ablation, None)
         self.blend_votes: Optional[torch.Tensor] = None  # (2, N) the gate's sums over the edited views
+        self.was_distinct: Optional[torch.Tensor] = None  # (N,) found a part of its own in an earlier cycle
 
     @torch.no_grad()
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
@@ -284,7 +291,13 @@ class Recolour(EditStrategy):
         seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
         takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
         colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
-        distinct = distinct_parts(colours, num / den.clamp_min(1e-12), seen, DISTINCT_PART_BLEND)
+        blend = num / den.clamp_min(1e-12)
+        part = part_colours(colours, blend, seen, DISTINCT_PART_BLEND)
+        distinct = (distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=part) if part is not None
+                    else torch.zeros_like(seen))
+        if part is not None and self.was_distinct is not None and self.was_distinct.shape == distinct.shape:
+            distinct |= still_distinct(self.was_distinct, colours, blend, seen, DISTINCT_PART_BLEND, part, STILL_DISTINCT)
+        self.was_distinct = distinct.clone() if self.was_distinct is None else (self.was_distinct | distinct)
         takes &= ~distinct
         system.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, system.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, system.optimizers())
@@ -300,14 +313,17 @@ class Recolour(EditStrategy):
                         "lets the edit through")
 
     def state_dict(self) -> Dict[str, Any]:
-        return {"blend_votes": None if self.blend_votes is None else self.blend_votes.cpu()}
+        return {key: None if value is None else value.cpu()
+                for key, value in (("blend_votes", self.blend_votes), ("was_distinct", self.was_distinct))}
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
-        self.blend_votes = state.get("blend_votes")
+        self.blend_votes, self.was_distinct = state.get("blend_votes"), state.get("was_distinct")
 
     def to(self, device) -> "Recolour":
         if self.blend_votes is not None:
             self.blend_votes = self.blend_votes.to(device)
+        if self.was_distinct is not None:
+            self.was_distinct = self.was_distinct.to(device)
         return self
 
 
