@@ -26,7 +26,8 @@ import torch
 from gs_regional.config import ConfigError, need
 from gs_regional.stages.change import NOISE_SIGMAS, edit_blend
 from gs_regional.stages.composite import (
-    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, part_colours, recoloured, still_distinct,
+    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, part_colours, recoloured,
+    still_distinct,
 )
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
