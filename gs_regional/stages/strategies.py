@@ -293,12 +293,14 @@ class Recolour(EditStrategy):
         takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
         colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
         blend = num / den.clamp_min(1e-12)
+        if self.was_distinct is None or self.was_distinct.shape != seen.shape:
+            self.was_distinct = torch.zeros_like(seen)
+        distinct = torch.zeros_like(seen)
         part = part_colours(colours, blend, seen, DISTINCT_PART_BLEND)
-        distinct = (distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=part) if part is not None
-                    else torch.zeros_like(seen))
-        if part is not None and self.was_distinct is not None and self.was_distinct.shape == distinct.shape:
-            distinct |= still_distinct(self.was_distinct, colours, blend, seen, DISTINCT_PART_BLEND, part, STILL_DISTINCT)
-        self.was_distinct = distinct.clone() if self.was_distinct is None else (self.was_distinct | distinct)
+        if part is not None:
+            distinct = distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=part) | still_distinct(
+                self.was_distinct, colours, blend, seen, DISTINCT_PART_BLEND, part, STILL_DISTINCT)
+        self.was_distinct |= distinct
         takes &= ~distinct
         system.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, system.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, system.optimizers())
