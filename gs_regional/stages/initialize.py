@@ -31,11 +31,12 @@ class InitConfig:
     depth_change: float = 0.03
     noise_sigmas: float = 4.0
     min_changed_fraction: float = 0.01
-    # A view whose depth shows no change of shape may still be an addition the editor drew a few
-    # pixels off (its position jitter: at 64² a 3 px shift moves the synthetic moustache, 1-5 px
-    # thick, off itself, and its depth shows nothing); the edit counts as a recolour only when
-    # the full edits of this many views (largest regions first) show none. Each extra view costs
-    # one full edit, spent only when the views before it show no change of shape.
+    # The full edits of this many views (largest regions first) are checked. A view whose depth
+    # shows no change of shape may still be an addition the editor drew a few pixels off (its
+    # position jitter: at 64² a 3 px shift moves the synthetic moustache, 1-5 px thick, off
+    # itself), so the edit counts as a recolour only when none shows a change; and one may see the
+    # new object edge-on (every view's mask on a round head is about as large), so an addition is
+    # placed from the view whose depth shows the largest change. Each view costs one full edit.
     views: int = 2
     scale_evidence: float = 1.5  # see new_gaussians_from_depth: when the edited view's own depth scale is used
     # A calibration fitted on fewer pixels, or whose median relative residual exceeds
@@ -390,15 +391,16 @@ def initialize_from_views(
     sh_degree: int,
     region_means: Optional[torch.Tensor] = None,
 ) -> DepthInit:
-    """§3.2 steps 2-5 from the first view of `order`; while its depth shows no change of shape,
-    from the next (up to `cfg.views` views): one edit can draw a thin new object a few pixels off,
-    and its depth then shows no change of shape. The first view whose depth shows a change is used
-    (else the first); a first view whose calibration is rejected ends the search."""
-    found = None
+    """§3.2 steps 2-5 from each view of `order` (the first `cfg.views` of it): one edit can draw a
+    thin new object a few pixels off, its depth then showing no change of shape, or see it
+    edge-on, its depth then showing a sliver. The view whose depth shows a change and places the
+    most Gaussians is used (else the first); a first view whose calibration is rejected ends the
+    search."""
+    found, changed = None, False
     for k, u in enumerate(order):
         if k:
-            log.info("initialize: the depth of view %d shows no change of shape; checking the edit of view %d",
-                     order[k - 1], u)
+            log.info("initialize: checking the edit of view %d too (view %d's depth %s)", u, found.view,
+                     "shows a change of shape" if changed else "shows no change of shape")
         cam, unedited, edited = camera(u), source(u), edit(u)
         out = render(u)
         disp = disparity(torch.stack([unedited, edited]), [cam, cam])
@@ -409,9 +411,10 @@ def initialize_from_views(
         # shape seen without calibration (the region fills the view) is.
         shows_change = ("rejected" not in report and report["added"] > 0) or \
             bool((report.get("uncalibrated") or {}).get("shape_changed"))
-        if k == 0 or shows_change:
+        if k == 0 or (shows_change and (not changed or report["added"] > found.report["added"])):
             found = DepthInit(u, edited, params, report, d_new, disp)
-        if (k == 0 and "rejected" in report) or shows_change:
+        changed = changed or shows_change
+        if k == 0 and "rejected" in report:
             break
     found.report["views_checked"] = order[: k + 1]
     return found

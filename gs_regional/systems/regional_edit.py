@@ -255,8 +255,9 @@ class RegionalEdit(EditSystemBase):
         return first
 
     def initialize_from_depth(self, views: List[int], regions: List[torch.Tensor], areas: torch.Tensor) -> None:
-        """§3.2 steps 2-5 (stages/initialize.py), from the first view or, when its depth shows no
-        change of shape, the next largest regions' (`init.views`); adds the new Gaussians."""
+        """§3.2 steps 2-5 (stages/initialize.py), from the view among the first and the next
+        largest regions' (`init.views`) whose depth shows the most change of shape; adds the new
+        Gaussians."""
         cfg, s, g, scene = self.cfg, self.state, self.geometry, self.scene
         v = s.v_first
         ranked = [views[i] for i in torch.argsort(areas, descending=True, stable=True).tolist() if views[i] != v]
@@ -267,7 +268,7 @@ class RegionalEdit(EditSystemBase):
             lambda u: regions[views.index(u)], cfg.init, g.sh_degree, region_means=g.means.detach()[g.mask])
         v, edited, params, report, d_new, disp = (found.view, found.edited, found.params, found.report, found.d_new,
                                                   found.disparities)
-        if v != s.v_first:  # the view whose depth shows the change of shape is the first edited view
+        if v != s.v_first:  # the view whose depth shows the most change of shape is the first edited view
             s.v_first, s.first_edit = v, edited
             self.save_image("initialize/first_view_source.png", self.source_renders[v])
             self.save_image("initialize/first_view_edited.png", edited)
