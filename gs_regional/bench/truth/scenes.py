@@ -319,9 +319,11 @@ _PART_CANDIDATES = 64  # an addition's resting point is looked for under this ma
 def _part_anchor(subject: Subject, region, r: float):
     """(through, landing point, direction) of an object resting on the part: seen from `add_up`
     when it can, else from the side (the four directions across `add_up`: a body whose top the
-    head covers gets the object on its flank). Per direction, under the part's Gaussians furthest
-    along it (nearest the subject's axis first among equals), the first whose landing point's
-    nearest Gaussian is the part's."""
+    head covers gets the object on its flank), the sides facing the subject's front (the cameras)
+    first: a ball on the figure's back, which no camera of the rig sees, was drawn before its
+    front was tried. Per direction, under the part's Gaussians furthest along it (nearest the
+    subject's axis first among equals), the first whose landing point's nearest Gaussian is the
+    part's."""
     import torch
 
     from gs_regional.config import ConfigError
@@ -334,7 +336,8 @@ def _part_anchor(subject: Subject, region, r: float):
     rel = means[rows] - subject.center
     up = subject.add_up
     e1, e2 = _horizontal_basis(up)
-    for direction in (up, e1, -e1, e2, -e2):
+    sides = sorted((e1, -e1, e2, -e2), key=lambda side: -float(side @ subject.front))  # (stable: ties keep order)
+    for direction in (up, *sides):
         height = rel @ direction
         lateral = (rel - height[:, None] * direction).norm(dim=-1)
         for i in rows[torch.argsort(-(height - 0.3 * lateral))[:_PART_CANDIDATES]].tolist():
