@@ -255,6 +255,7 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
     assert 0 < alone[side] < alone[front]  # seen edge-on, the moustache changes the depth of fewer pixels
     found = run([side, front])
     assert found.report["views_checked"] == [side, front]
+    assert found.report["views_placed"] == [alone[side], alone[front]]  # why the front was taken
     assert found.view == front and found.report["added"] == alone[front]
     # Placed from the better view whichever comes first; a view whose depth shows no change is not taken.
     assert run([front, side]).view == front

@@ -396,7 +396,7 @@ def initialize_from_views(
     edge-on, its depth then showing a sliver. The view whose depth shows a change and places the
     most Gaussians is used (else the first); a first view whose calibration is rejected ends the
     search."""
-    found, changed = None, False
+    found, changed, placed = None, False, []
     for k, u in enumerate(order):
         if k:
             log.info("initialize: checking the edit of view %d too (view %d's depth %s)", u, found.view,
@@ -411,10 +411,12 @@ def initialize_from_views(
         # shape seen without calibration (the region fills the view) is.
         shows_change = ("rejected" not in report and report["added"] > 0) or \
             bool((report.get("uncalibrated") or {}).get("shape_changed"))
+        placed.append(report["added"])
         if k == 0 or (shows_change and (not changed or report["added"] > found.report["added"])):
             found = DepthInit(u, edited, params, report, d_new, disp)
         changed = changed or shows_change
         if k == 0 and "rejected" in report:
             break
     found.report["views_checked"] = order[: k + 1]
+    found.report["views_placed"] = placed  # the Gaussians each checked view's depth placed
     return found
