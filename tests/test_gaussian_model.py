@@ -301,6 +301,10 @@ def test_source_index_follows_rows_and_finds_the_source_region():
     assert out == {"cloned": 1, "split": 1, "pruned": 1}
     assert torch.equal(rows.source_rows(m, m.mask, n), region & (torch.arange(n) != 4))  # the faint one is gone
     assert (m.source_index[m.generation == 1] == -1).all()
+    # The way back: every row descending from a selected source row (clones and split halves too),
+    # none of the added ones.
+    back = rows.of_source(m, region)
+    assert torch.equal(rows.source_rows(m, back, n), region & (torch.arange(n) != 4)) and not back[m.generation == 1].any()
     assert not torch.equal(m.mask[:n], region)  # what indexing by position would have used
     with pytest.raises(ValueError, match="out of range"):
         rows.source_rows(m, m.mask, 3)

@@ -217,6 +217,13 @@ def source_rows(model: GaussianModel, selected: torch.Tensor, n_source: int) -> 
     return out
 
 
+def of_source(model: GaussianModel, source_selected: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the rows of `model` that are or descend from the `source_selected` rows of the
+    source scene (the inverse of `source_rows`); rows with no source (added ones) are not."""
+    src = model.source_index
+    return (src >= 0) & source_selected.to(src.device)[src.clamp_min(0)]
+
+
 @torch.no_grad()
 def spare_last_descendants(model: GaussianModel, prune: torch.Tensor, removed: Optional[torch.Tensor] = None) -> torch.Tensor:
     """`prune` (N,) bool without the rows that would leave a source row with no descendant: for

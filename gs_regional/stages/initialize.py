@@ -396,11 +396,11 @@ def initialize_from_views(
     edge-on, its depth then showing a sliver. The view whose depth shows a change and places the
     most Gaussians is used (else the first); a first view whose calibration is rejected ends the
     search."""
-    found, changed, placed = None, False, []
+    found, best, placed = None, None, []
     for k, u in enumerate(order):
         if k:
             log.info("initialize: checking the edit of view %d too (view %d's depth %s)", u, found.view,
-                     "shows a change of shape" if changed else "shows no change of shape")
+                     "shows a change of shape" if best[0] else "shows no change of shape")
         cam, unedited, edited = camera(u), source(u), edit(u)
         out = render(u)
         disp = disparity(torch.stack([unedited, edited]), [cam, cam])
@@ -412,9 +412,8 @@ def initialize_from_views(
         shows_change = ("rejected" not in report and report["added"] > 0) or \
             bool((report.get("uncalibrated") or {}).get("shape_changed"))
         placed.append(report["added"])
-        if k == 0 or (shows_change and (not changed or report["added"] > found.report["added"])):
-            found = DepthInit(u, edited, params, report, d_new, disp)
-        changed = changed or shows_change
+        if found is None or (shows_change, report["added"]) > best:  # a change first, then the most placed
+            found, best = DepthInit(u, edited, params, report, d_new, disp), (shows_change, report["added"])
         if k == 0 and "rejected" in report:
             break
     found.report["views_checked"] = order[: k + 1]

@@ -243,15 +243,13 @@ class Recolour(EditStrategy):
         if cycle == 0 or self.blend_votes is None or not self.regional:
             return frontal, near
         g, scene = system.geometry, system.scene
-        src = g.source_index
-        selected = (src >= 0) & system.state.source_selection.to(system.device)[src.clamp_min(0)]
-        unseen = (selected & (self.blend_votes[1] < SEEN_MIN_WEIGHT)).float()
+        unseen = rows.of_source(g, system.state.source_selection) & (self.blend_votes[1] < SEEN_MIN_WEIGHT)
         if not bool(unseen.any()):
             return frontal, near
         best, most = None, 0.0
         for v in spread_subset(scene.train_indices, UNEDITED_CANDIDATES):
             cam = scene.cameras[v].to(system.device)
-            area = float(system.renderer.pixel_weights(g, cam).splat(unseen[:, None]).sum()) / (cam.width * cam.height)
+            area = float(render_selection(g, system.renderer, cam, unseen).sum()) / (cam.width * cam.height)
             if area >= UNEDITED_MIN_AREA and area > most:
                 best, most = v, area
         if best is None:
@@ -288,7 +286,7 @@ class Recolour(EditStrategy):
             self.blend_votes[1] += view.gather(torch.ones_like(blend))
         num, den = self.blend_votes
         src = g.source_index
-        selected = (src >= 0) & s.source_selection.to(system.device)[src.clamp_min(0)]
+        selected = rows.of_source(g, s.source_selection)
         seen = selected & (den >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
         takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
         colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
