@@ -138,6 +138,18 @@ def test_add_rests_a_sphere_on_top_of_the_head(figure):
     assert not bool((gt.related & gt.region).any())
 
 
+@pytest.mark.parametrize("across", [0.2, 0.3])
+def test_an_added_sphere_off_the_top_rests_on_the_slope(figure, across):
+    """A sphere whose line passes beside the head's top touches the head's slope (sunk by
+    add_sink), not the top's height beside it: a sphere floating over the slope was not on the head."""
+    gt = truth_of({"ply": figure["ply"], "up": Y_UP, "edit": "add", "anchor": [across, 0.0, 0.0], "add_radius": 0.15,
+                   "add_count": 300, "add_sink": 0.25, "n_cameras": 4}).ground_truth
+    n, r = len(gt.source), 0.15 * object_frame(gt.source)[1]
+    centre = gt.edited.means.detach()[n:].mean(0)
+    nearest = float((gt.source.means.detach() - centre).norm(dim=-1).min())
+    assert 0.7 * r < nearest < 0.9 * r  # touching and sunk in (floating: 1.02 r and 1.21 r)
+
+
 def test_truths_are_deterministic(figure):
     cfg = {"ply": figure["ply"], "up": Y_UP, "edit": "add", "anchor": [0.0, 0.0, 0.0], "n_cameras": 4}
     a, b = truth_of(cfg), truth_of(cfg)

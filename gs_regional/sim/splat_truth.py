@@ -306,6 +306,26 @@ def surface_point(model: GaussianModel, through: torch.Tensor, direction: torch.
     return through + float(along[near].max()) * direction
 
 
+def resting_contact(model: GaussianModel, through: torch.Tensor, direction: torch.Tensor, r: float) -> Tuple[float, int]:
+    """(height, row): a sphere of radius `r` centred on the line through `through`, lowered along
+    -`direction` onto the opaque Gaussians, first touches Gaussian `row` with its centre `height`
+    along the line. On a dome whose top lies off the line the sphere touches the slope (a sphere
+    set at the top's height floats beside it)."""
+    means = model.means.detach()
+    rel = means - through
+    along = rel @ direction
+    lateral = (rel - along[:, None] * direction).norm(dim=-1)
+    near = (lateral <= r) & (model.opacities.detach() > OPAQUE)
+    if not bool(near.any()):
+        raise ConfigError(
+            f"splat-truth add: no opaque Gaussian within {r:.4g} of the line through the anchor "
+            f"{through.tolist()} along {direction.tolist()}; move data.anchor onto the object"
+        )
+    touch = torch.where(near, along + (r * r - lateral.clamp_max(r) ** 2).sqrt(), torch.full_like(along, -float("inf")))
+    row = int(touch.argmax())
+    return float(touch[row]), row
+
+
 def sphere_gaussians(center: torch.Tensor, radius: float, count: int, color: Sequence[float], light: torch.Tensor,
                      seed: int, sh_degree: int) -> GaussianModel:
     """A sphere of `count` flat, opaque Gaussians tangent to its surface (the synthetic scene's
@@ -434,8 +454,8 @@ class SplatTruthDataModule(SceneDataModuleBase):
         else:
             r = c.add_radius * radius
             side = up if c.add_direction is None else _unit(c.add_direction, "data.add_direction")
-            top = surface_point(source, anchor, side, width=r)
-            sphere_center = top + (1 - c.add_sink) * r * side
+            height, _ = resting_contact(source, anchor, side, r)
+            sphere_center = anchor + (height - c.add_sink * r) * side
             added = sphere_gaussians(sphere_center, r, c.add_count, color, up, c.seed, source.sh_degree)
             region, related = select_ball(source, sphere_center, c.region_radius * r)
             if c.region_file:  # the whole part the object rests on

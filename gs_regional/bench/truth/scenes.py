@@ -322,12 +322,12 @@ def _part_anchor(subject: Subject, region, r: float):
     head covers gets the object on its flank), the sides facing the subject's front (the cameras)
     first: a ball on the figure's back, which no camera of the rig sees, was drawn before its
     front was tried. Per direction, under the part's Gaussians furthest along it (nearest the
-    subject's axis first among equals), the first whose landing point's nearest Gaussian is the
-    part's."""
+    subject's axis first among equals), the first where the object touches the part first
+    (`resting_contact`); the landing point is the Gaussian it touches."""
     import torch
 
     from gs_regional.config import ConfigError
-    from gs_regional.sim.splat_truth import OPAQUE, _horizontal_basis, surface_point
+    from gs_regional.sim.splat_truth import OPAQUE, _horizontal_basis, resting_contact
 
     means = subject.model.means
     rows = torch.nonzero(region & (subject.model.opacities > OPAQUE)).flatten()
@@ -343,11 +343,11 @@ def _part_anchor(subject: Subject, region, r: float):
         for i in rows[torch.argsort(-(height - 0.3 * lateral))[:_PART_CANDIDATES]].tolist():
             through = means[i]
             try:
-                p = surface_point(subject.model, through, direction, r)
+                _, row = resting_contact(subject.model, through, direction, r)
             except ConfigError:
                 continue
-            if bool(region[int((means - p).norm(dim=-1).argmin())]):
-                return through, p, direction
+            if bool(region[row]):
+                return through, means[row], direction
     raise ValueError(f"no point of the part is seen from above or from the side ({subject.name})")
 
 
@@ -428,9 +428,12 @@ def resolve(case: dict, subject: Optional[Subject], s: dict) -> Tuple[str, List[
             facts.update(anchor_world=[round(float(v), 4) for v in p], anchor_scale=scale)
             part = subject.part_at(p)
     else:
+        from gs_regional.sim.splat_truth import resting_contact
+
         data["edit"] = "add"
         r = case["add_radius"] * subject.radius
-        through, p, scale = _anchor(subject, case, subject.add_up, r)
+        through, _, scale = _anchor(subject, case, subject.add_up, r)
+        p = subject.model.means[resting_contact(subject.model, through, subject.add_up, r)[1]]  # what it rests on
         data.update(anchor=subject.to_object(through), add_radius=round(r / subject.obj_radius, 5),
                     add_count=case["add_count"], region_radius=case["region_radius"])
         facts.update(anchor_world=[round(float(v), 4) for v in p], anchor_scale=scale)
