@@ -235,7 +235,7 @@ def test_components_agrees_with_a_flood_fill_on_random_masks():
     assert len(components(snake)[snake].unique()) == 1
 
 
-@pytest.mark.parametrize("over", ["behind", "beside", "corner"])
+@pytest.mark.parametrize("over", ["behind", "short", "beside", "corner"])
 def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it(over):
     """A big ball put on a small part (the top of a head) seen from the side covers none of the
     part: all of its change lies beside the selection, over the wall far behind, which the safe stop
@@ -243,7 +243,9 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     resting on the region from above counts as in the region when the source there lies behind the
     region; not when it is another part beside it at the region's depth (an edit of that part),
     and not when it lies behind but touches the region's margin at a corner only (an object
-    placed off the part: the stability sweep's 16 px position jitter, which should stop)."""
+    placed off the part: the stability sweep's 16 px position jitter, which should stop). Its
+    change may stop a pixel short of the margin (`short`: the edge regenerating softened, which a
+    blurred source explains) and still rests on the region."""
     from gs_regional.stages.change import edit_change
 
     gen = torch.Generator().manual_seed(0)
@@ -255,8 +257,8 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     if over == "corner":  # off to the side: 3 of its pixels in the margin's corner
         ball = ((yy - 21) ** 2 + (xx - 34) ** 2) <= 25
-    else:  # resting on the head, its lower rim hidden by it (rows 17-25)
-        ball = (((yy - 22) ** 2 + (xx - 24) ** 2) <= 25) & (yy < 26)
+    else:  # resting on the head, its lower rim hidden by it (rows 17-25; `short`: 17-23, short of the margin)
+        ball = (((yy - 22) ** 2 + (xx - 24) ** 2) <= 25) & (yy < (24 if over == "short" else 26))
     behind = torch.zeros_like(region)
     if over != "beside":
         behind[:24] = True  # the wall far behind the head
@@ -264,8 +266,8 @@ def test_an_object_grown_out_of_the_region_over_what_lies_behind_counts_as_in_it
     edited[ball] = torch.tensor([0.9, 0.1, 0.1])
     near, total, filled = edit_change(edited, source, region, behind=behind)
     plain_near, plain_total, _ = edit_change(edited, source, region)
-    assert filled == 0.0 and plain_total == total > 60 and plain_near / plain_total < 0.5  # mostly beside
-    if over == "behind":
+    assert filled == 0.0 and plain_total == total > 40 and plain_near / plain_total < 0.5  # mostly beside
+    if over in ("behind", "short"):
         assert near / total > 0.95
     else:
         assert near == plain_near

@@ -52,6 +52,11 @@ BLOB_BEHIND = 0.75
 # least this share of margin x sqrt(its size) (a width-scale contact, the same at any resolution):
 # an object resting on a part touches it along its width, one placed off the part at a corner.
 BLOB_CONTACT = 0.5
+# The contact is counted this many pixels beyond the margin: where an object meets the region's
+# edge, regenerating softens both edges and a blurred source explains that pixel (`real_change`),
+# so the object's change stops a pixel short of the edge (a big ball on a head's far slope, seen
+# from the side: 1 px in the margin, 15 one pixel further).
+BLOB_SOFT_EDGE_PX = 1
 
 
 def real_change(edited: torch.Tensor, source: torch.Tensor, calm: torch.Tensor, noise_sigmas: float,
@@ -154,7 +159,8 @@ def edit_change(
         moved = changed >= 0.5
         blob = components(moved)[moved]
         size = torch.bincount(blob, minlength=near.numel()).float()
-        contact = torch.bincount(blob, near[moved].float(), minlength=near.numel())
+        touching = dilate(region, margin_px + BLOB_SOFT_EDGE_PX)
+        contact = torch.bincount(blob, touching[moved].float(), minlength=near.numel())
         over = torch.bincount(blob, (near | behind.to(near.device))[moved].float(), minlength=near.numel())
         rests = contact >= BLOB_CONTACT * max(margin_px, 1) * size.sqrt()  # > 0 for every blob
         grown = torch.zeros_like(near)
