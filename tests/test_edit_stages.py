@@ -178,6 +178,35 @@ def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_
     assert report["moved_onto_part"] == 0 and report["added"] == int(over_part.sum())
 
 
+def test_an_object_larger_than_its_part_is_placed_whole():
+    """A ball put on a nose is larger than the nose: measured by the part's size alone, the
+    distance that drops depth outliers (max_distance x the part's diagonal) dropped every pixel of
+    the ball. It scales with the object's own size (its pixels' box at their depth) when that is
+    larger, so the ball is placed whole, while a pixel whose depth lands far behind is still dropped."""
+    h = w = 32
+    cam = look_at((0.0, 0.0, -4.0), size=w)
+    part = torch.zeros(h, w, dtype=torch.bool)
+    part[15:17, 15:17] = True  # the nose: 2 x 2 px at depth 2, in front of a wall at 5-6
+    d3 = torch.where(part, torch.tensor(2.0), 5.0 + torch.linspace(0, 1, w)[None].expand(h, w))
+    ball = torch.zeros(h, w, dtype=torch.bool)
+    ball[12:18, 13:19] = True  # 6 x 6 px at depth 1.9
+    outlier = torch.zeros(h, w, dtype=torch.bool)
+    outlier[12, 13] = True  # its corner's depth lost to the wall behind: 4.5 deep
+    true_depth = torch.where(ball, torch.tensor(1.9), d3)
+    true_depth[outlier] = 4.5
+    unedited = torch.full((h, w, 3), 0.5)
+    edited = unedited.clone()
+    edited[ball] = torch.tensor([0.2, 0.8, 0.1])
+    disp_u, disp_e = 2.0 / d3 + 0.3, 2.0 / true_depth + 0.3
+    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
+    part_means = unproject(cam, d3[part], part.nonzero())
+    params, report, _ = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), disp_u, disp_e, cfg,
+                                                 sh_degree=0, region_means=part_means)
+    assert report["added"] == int(ball.sum()) - 1 and report["skipped_far_from_region"] == 1
+    z = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    assert torch.allclose(z[:, 2], torch.full_like(z[:, 2], 1.9), rtol=1e-3)
+
+
 class _Cover(PixelWeights):
     """A view whose render of any non-empty selection is the coverage map `cover` (H, W)."""
 

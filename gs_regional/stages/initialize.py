@@ -81,16 +81,25 @@ def unproject(camera: Camera, depth: torch.Tensor, pixels: torch.Tensor) -> torc
     return pts_cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
-def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: float) -> torch.Tensor:
-    """(K,) bool: points within `max_distance` x (robust bounding-box diagonal of region_means) of
-    a region Gaussian."""
+def near_region(points: torch.Tensor, region_means: torch.Tensor, max_distance: float, size: float = 0.0) -> torch.Tensor:
+    """(K,) bool: points within `max_distance` x (robust bounding-box diagonal of region_means, or
+    `size` when larger) of a region Gaussian."""
     if region_means.shape[0] == 0 or max_distance <= 0:
         return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
     # The box of the 2%-98% quantiles per axis: one stray selected Gaussian must not set the size
     # (the donut add's selection: a single outlier made the diagonal 0.156 instead of 0.096).
     lo, hi = quantile_box(region_means, 0.02)
-    radius = max_distance * float((hi - lo).norm())
+    radius = max_distance * max(float((hi - lo).norm()), size)
     return within_radius(points, region_means, radius)
+
+
+def pixels_extent(camera: Camera, pixels: torch.Tensor, depth: torch.Tensor) -> float:
+    """The world size of what `pixels` (K, 2) at `depth` (K,) show: the diagonal of their box
+    (2%-98% quantiles, in whole pixels) at their median depth."""
+    if pixels.shape[0] == 0:
+        return 0.0
+    lo, hi = quantile_box(pixels.float(), 0.02)
+    return float((hi - lo + 1).norm()) * float(depth.median()) / (0.5 * (camera.fx + camera.fy))
 
 
 def carry_depth(depth: torch.Tensor, known: torch.Tensor, px: int) -> torch.Tensor:
@@ -322,7 +331,10 @@ def new_gaussians_from_depth(
     depth = d_new[pixels[:, 0], pixels[:, 1]]
     means = unproject(camera, depth, pixels)
     if region_means is not None:
-        near = near_region(means, region_means, cfg.max_distance)
+        # A part smaller than the object put on it (a ball on a nose) would drop the whole object:
+        # the distance scales with the larger of the two, the object measured by its pixels.
+        size = pixels_extent(camera, pixels, depth)
+        near = near_region(means, region_means, cfg.max_distance, size)
         # What is added goes on the localized part. Beside the part's silhouette the scene's depth
         # is whatever lies behind it (the backdrop), and there a small object's disparity, or a
         # large one's edge, is mostly lost to the estimator's blur and the median filter: the
@@ -345,7 +357,7 @@ def new_gaussians_from_depth(
             moved = moved & (onto < depth)
             depth = torch.where(moved, onto, depth)
             means = torch.where(moved[:, None], unproject(camera, depth, pixels), means)
-            near = near | (moved & near_region(means, region_means, cfg.max_distance))
+            near = near | (moved & near_region(means, region_means, cfg.max_distance, size))
             d_new = d_new.clone()
             d_new[pixels[:, 0], pixels[:, 1]] = depth
         report["moved_onto_part"] = int((moved & near).sum())
