@@ -223,7 +223,7 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
     out a wisp (the demo on scene seed 3: +3.0 dB in the footprint, +9.8 placed from a frontal
     view). Initialization checks the next view too and places the object from the one whose
     depth shows the larger change of shape."""
-    from gs_regional.stages.initialize import initialize_from_views
+    from gs_regional.stages.initialize import PLACED_ENOUGH, initialize_from_views
 
     gt = make_edit("add")
     cams = make_cameras(40, 96, 96)[0]
@@ -240,7 +240,7 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
                 renders[u] = renderer.render(gt.source, cams[u])
         return renders[u]
 
-    def run(order):
+    def run(order, changed_px=None):
         with torch.no_grad():
             return initialize_from_views(
                 order, lambda u: editor.edit(render(u)["rgb"][None], render(u)["rgb"][None], gt.prompt, t_start=None,
@@ -248,7 +248,7 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
                 lambda u: render(u)["rgb"], lambda u: cams[u], render,
                 lambda images, cameras: depth.disparity(images, cameras=cameras),
                 lambda u: render_selection(gt.source, renderer, cams[u], gt.region) > 0.5, InitConfig(), 0,
-                region_means=gt.source.means[gt.region])
+                region_means=gt.source.means[gt.region], changed_px=changed_px)
 
     side, front = 0, VIEW
     alone = {u: run([u]).report["added"] for u in (side, front)}
@@ -259,3 +259,9 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
     assert found.view == front and found.report["added"] == alone[front]
     # Placed from the better view whichever comes first; a view whose depth shows no change is not taken.
     assert run([front, side]).view == front
+    # A first view whose depth places PLACED_ENOUGH per pixel its edit changes is not second-guessed
+    # (the next view's full edit is not spent); one that places less is.
+    enough = alone[front] / PLACED_ENOUGH
+    assert run([front, side], changed_px=enough).report["views_checked"] == [front]
+    assert run([front, side], changed_px=1.01 * enough).report["views_checked"] == [front, side]
+    assert run([side, front], changed_px=alone[side] / PLACED_ENOUGH + 1).view == front
