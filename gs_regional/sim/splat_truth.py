@@ -290,9 +290,10 @@ def recolor(source: GaussianModel, region: torch.Tensor, color: Sequence[float])
     )
 
 
-def surface_point(model: GaussianModel, through: torch.Tensor, direction: torch.Tensor, width: float) -> torch.Tensor:
-    """Where the line through `through` along `direction` leaves the object on the `direction`
-    side: the outermost opaque Gaussian within `width` of the line, projected onto the line."""
+def _along_line(model: GaussianModel, through: torch.Tensor, direction: torch.Tensor, width: float):
+    """(along, lateral, near): each Gaussian's position along the line through `through` along
+    `direction` and its distance from it; `near`, the opaque ones within `width` of it (at least
+    one, else the anchor is off the object)."""
     means = model.means.detach()
     rel = means - through
     along = rel @ direction
@@ -303,6 +304,13 @@ def surface_point(model: GaussianModel, through: torch.Tensor, direction: torch.
             f"splat-truth add: no opaque Gaussian within {width:.4g} of the line through the anchor "
             f"{through.tolist()} along {direction.tolist()}; move data.anchor onto the object"
         )
+    return along, lateral, near
+
+
+def surface_point(model: GaussianModel, through: torch.Tensor, direction: torch.Tensor, width: float) -> torch.Tensor:
+    """Where the line through `through` along `direction` leaves the object on the `direction`
+    side: the outermost opaque Gaussian within `width` of the line, projected onto the line."""
+    along, _, near = _along_line(model, through, direction, width)
     return through + float(along[near].max()) * direction
 
 
@@ -311,16 +319,7 @@ def resting_contact(model: GaussianModel, through: torch.Tensor, direction: torc
     -`direction` onto the opaque Gaussians, first touches Gaussian `row` with its centre `height`
     along the line. On a dome whose top lies off the line the sphere touches the slope (a sphere
     set at the top's height floats beside it)."""
-    means = model.means.detach()
-    rel = means - through
-    along = rel @ direction
-    lateral = (rel - along[:, None] * direction).norm(dim=-1)
-    near = (lateral <= r) & (model.opacities.detach() > OPAQUE)
-    if not bool(near.any()):
-        raise ConfigError(
-            f"splat-truth add: no opaque Gaussian within {r:.4g} of the line through the anchor "
-            f"{through.tolist()} along {direction.tolist()}; move data.anchor onto the object"
-        )
+    along, lateral, near = _along_line(model, through, direction, r)
     touch = torch.where(near, along + (r * r - lateral.clamp_max(r) ** 2).sqrt(), torch.full_like(along, -float("inf")))
     row = int(touch.argmax())
     return float(touch[row]), row
