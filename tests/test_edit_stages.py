@@ -207,6 +207,35 @@ def test_an_object_larger_than_its_part_is_placed_whole():
     assert torch.allclose(z[:, 2], torch.full_like(z[:, 2], 1.9), rtol=1e-3)
 
 
+def test_an_object_standing_clear_of_its_parts_silhouette_is_placed_whole():
+    """A big ball on a head stands out of the head's silhouette, over the wall far behind: only the
+    pixels within `dilate_px` of the region were candidates (290016 c23's ball: 43 of its 78
+    changed pixels, under the depth noise's count over its large region, so nothing was placed). A blob of change of
+    shape that reaches into the region is taken whole; one that does not (elsewhere in the view)
+    is not."""
+    h = w = 32
+    cam = look_at((0.0, 0.0, -4.0), size=w)
+    part = torch.zeros(h, w, dtype=torch.bool)
+    part[16:24, 12:20] = True  # the head: 8 x 8 px at depth 2, in front of a wall at 5-6
+    d3 = torch.where(part, torch.tensor(2.0), 5.0 + torch.linspace(0, 1, w)[None].expand(h, w))
+    ball = torch.zeros(h, w, dtype=torch.bool)
+    ball[12:16, 12:20] = True  # resting on it: row 12 beyond the 3 px the region is grown by
+    elsewhere = torch.zeros(h, w, dtype=torch.bool)
+    elsewhere[26:30, 26:30] = True  # a change of shape the edit made away from the region
+    true_depth = torch.where(ball, torch.tensor(1.9), d3)
+    true_depth[elsewhere] = 3.0
+    unedited = torch.full((h, w, 3), 0.5)
+    edited = unedited.clone()
+    edited[ball] = torch.tensor([0.2, 0.8, 0.1])
+    disp_u, disp_e = 2.0 / d3 + 0.3, 2.0 / true_depth + 0.3
+    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
+    part_means = unproject(cam, d3[part], part.nonzero())
+    params, report, d_new = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), disp_u, disp_e,
+                                                     cfg, sh_degree=0, region_means=part_means)
+    assert report["added"] == int(ball.sum()) and report["grown_out_of_region"] == 8
+    assert torch.allclose(d_new[ball], torch.full((int(ball.sum()),), 1.9), rtol=1e-3)
+
+
 class _Cover(PixelWeights):
     """A view whose render of any non-empty selection is the coverage map `cover` (H, W)."""
 

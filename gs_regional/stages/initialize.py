@@ -14,7 +14,7 @@ from gs_regional.data.cameras import Camera
 from gs_regional.depth.calibration import calibrated_depth, robust_affine, transfer_depth
 from gs_regional.stages.change import match_colors, real_change
 from gs_regional.geometry.neighbors import quantile_box, within_radius
-from gs_regional.utils.image import dilate
+from gs_regional.utils.image import components, dilate
 from gs_regional.utils.sh import rgb_to_sh
 
 log = logging.getLogger(__name__)
@@ -134,6 +134,14 @@ def changed_pixels(change: torch.Tensor, threshold: float) -> torch.Tensor:
     kernel = torch.ones(1, 1, 3, 3, device=change.device)
     neighbours = F.conv2d(above.float()[None, None], kernel, padding=1)[0, 0] - 1
     return above & (neighbours >= 0.5)
+
+
+def blobs_reaching(mask: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
+    """(H, W) bool: the 8-connected blobs of `mask` that have a pixel in `region`, whole."""
+    labels = components(mask).reshape(-1)
+    reach = torch.zeros(labels.numel(), dtype=torch.bool, device=mask.device)
+    reach[labels[(mask & region).reshape(-1)]] = True
+    return (mask.reshape(-1) & reach[labels.clamp_min(0)]).reshape(mask.shape)
 
 
 def clearly_changed(changed: int, expected_by_noise: float, region_pixels: int, cfg: InitConfig) -> bool:
@@ -305,13 +313,17 @@ def new_gaussians_from_depth(
 
     edited = match_colors(edited, unedited, calib_px)  # colours of the new Gaussians, in the scene's tone
     depth_changed = changed_pixels(relative_change, threshold)  # nearer by more than the noise
-    candidates = region & depth_changed & torch.isfinite(d_new) & (d_new > 0)
+    # An object added on a part grows out of the part's silhouette over what lies behind it (a big
+    # ball on a head stands a dozen pixels clear of it, beyond the `dilate_px` the region is grown
+    # by): a blob of change of shape that reaches into the region is taken whole.
+    grown = blobs_reaching(depth_changed, region)
+    candidates = (region | grown) & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
     # whose changed pixels are not clearly more than that rate predicts has no change of shape (a
     # recolour), and gets no Gaussians.
-    expected = float(depth_changed[calib_px].float().mean()) * int(region.sum())
+    expected = float(depth_changed[calib_px].float().mean()) * int((region | grown).sum())
     report.update(noise_changed_pixels=round(expected, 2))
-    if not clearly_changed(int(candidates.sum()), expected, int(region.sum()), cfg):
+    if not clearly_changed(int(candidates.sum()), expected, int((region | grown).sum()), cfg):
         candidates = torch.zeros_like(candidates)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True
@@ -320,6 +332,7 @@ def new_gaussians_from_depth(
     report.update(
         region_pixels=int(region.sum()),
         skipped_unchanged=int((region & ~depth_changed).sum()),
+        grown_out_of_region=int((grown & ~region).sum()),
         skipped_by_stride=int((candidates & ~grid).sum()),
     )
     if pixels.shape[0] > cfg.max_new:
