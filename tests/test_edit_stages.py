@@ -178,30 +178,40 @@ def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_
     assert report["moved_onto_part"] == 0 and report["added"] == int(over_part.sum())
 
 
+def _ball_on_part(part_box, ball_box, other_depths=()):
+    """A part at depth 2 in front of a wall at 5-6 (32 x 32 px, looked at from 4 away), and an edit
+    that puts a green ball at depth 1.9 over the box `ball_box` (rows, cols); `other_depths` sets
+    the edited view's depth at some pixels ([((rows, cols), depth)]). Returns the camera, the
+    part's 2D mask, the ball's, and `new_gaussians_from_depth`'s answer with the part's Gaussians
+    as the region."""
+    h = w = 32
+    cam = look_at((0.0, 0.0, -4.0), size=w)
+    part = torch.zeros(h, w, dtype=torch.bool)
+    part[part_box] = True
+    d3 = torch.where(part, torch.tensor(2.0), 5.0 + torch.linspace(0, 1, w)[None].expand(h, w))
+    ball = torch.zeros(h, w, dtype=torch.bool)
+    ball[ball_box] = True
+    true_depth = torch.where(ball, torch.tensor(1.9), d3)
+    for where, depth in other_depths:
+        true_depth[where] = depth
+    unedited = torch.full((h, w, 3), 0.5)
+    edited = unedited.clone()
+    edited[ball] = torch.tensor([0.2, 0.8, 0.1])
+    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
+    out = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), 2.0 / d3 + 0.3,
+                                   2.0 / true_depth + 0.3, cfg, sh_degree=0,
+                                   region_means=unproject(cam, d3[part], part.nonzero()))
+    return cam, part, ball, out
+
+
 def test_an_object_larger_than_its_part_is_placed_whole():
     """A ball put on a nose is larger than the nose: measured by the part's size alone, the
     distance that drops depth outliers (max_distance x the part's diagonal) dropped every pixel of
     the ball. It scales with the object's own size (its pixels' box at their depth) when that is
     larger, so the ball is placed whole, while a pixel whose depth lands far behind is still dropped."""
-    h = w = 32
-    cam = look_at((0.0, 0.0, -4.0), size=w)
-    part = torch.zeros(h, w, dtype=torch.bool)
-    part[15:17, 15:17] = True  # the nose: 2 x 2 px at depth 2, in front of a wall at 5-6
-    d3 = torch.where(part, torch.tensor(2.0), 5.0 + torch.linspace(0, 1, w)[None].expand(h, w))
-    ball = torch.zeros(h, w, dtype=torch.bool)
-    ball[12:18, 13:19] = True  # 6 x 6 px at depth 1.9
-    outlier = torch.zeros(h, w, dtype=torch.bool)
-    outlier[12, 13] = True  # its corner's depth lost to the wall behind: 4.5 deep
-    true_depth = torch.where(ball, torch.tensor(1.9), d3)
-    true_depth[outlier] = 4.5
-    unedited = torch.full((h, w, 3), 0.5)
-    edited = unedited.clone()
-    edited[ball] = torch.tensor([0.2, 0.8, 0.1])
-    disp_u, disp_e = 2.0 / d3 + 0.3, 2.0 / true_depth + 0.3
-    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
-    part_means = unproject(cam, d3[part], part.nonzero())
-    params, report, _ = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), disp_u, disp_e, cfg,
-                                                 sh_degree=0, region_means=part_means)
+    # the nose 2 x 2 px, the ball 6 x 6 px; its corner's depth lost to the wall behind: 4.5 deep
+    cam, _, ball, (params, report, _) = _ball_on_part(
+        (slice(15, 17), slice(15, 17)), (slice(12, 18), slice(13, 19)), [((12, 13), 4.5)])
     assert report["added"] == int(ball.sum()) - 1 and report["skipped_far_from_region"] == 1
     z = params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
     assert torch.allclose(z[:, 2], torch.full_like(z[:, 2], 1.9), rtol=1e-3)
@@ -210,28 +220,13 @@ def test_an_object_larger_than_its_part_is_placed_whole():
 def test_an_object_standing_clear_of_its_parts_silhouette_is_placed_whole():
     """A big ball on a head stands out of the head's silhouette, over the wall far behind: only the
     pixels within `dilate_px` of the region were candidates (290016 c23's ball: 43 of its 78
-    changed pixels, under the depth noise's count over its large region, so nothing was placed). A blob of change of
-    shape that reaches into the region is taken whole; one that does not (elsewhere in the view)
-    is not."""
-    h = w = 32
-    cam = look_at((0.0, 0.0, -4.0), size=w)
-    part = torch.zeros(h, w, dtype=torch.bool)
-    part[16:24, 12:20] = True  # the head: 8 x 8 px at depth 2, in front of a wall at 5-6
-    d3 = torch.where(part, torch.tensor(2.0), 5.0 + torch.linspace(0, 1, w)[None].expand(h, w))
-    ball = torch.zeros(h, w, dtype=torch.bool)
-    ball[12:16, 12:20] = True  # resting on it: row 12 beyond the 3 px the region is grown by
-    elsewhere = torch.zeros(h, w, dtype=torch.bool)
-    elsewhere[26:30, 26:30] = True  # a change of shape the edit made away from the region
-    true_depth = torch.where(ball, torch.tensor(1.9), d3)
-    true_depth[elsewhere] = 3.0
-    unedited = torch.full((h, w, 3), 0.5)
-    edited = unedited.clone()
-    edited[ball] = torch.tensor([0.2, 0.8, 0.1])
-    disp_u, disp_e = 2.0 / d3 + 0.3, 2.0 / true_depth + 0.3
-    cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
-    part_means = unproject(cam, d3[part], part.nonzero())
-    params, report, d_new = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), disp_u, disp_e,
-                                                     cfg, sh_degree=0, region_means=part_means)
+    changed pixels, under the depth noise's count over its large region, so nothing was placed). A
+    blob of change of shape that reaches into the region is taken whole; one that does not
+    (elsewhere in the view) is not."""
+    # the head 8 x 8 px; the ball resting on it, its row 12 beyond the 3 px the region is grown by;
+    # a change of shape the edit made away from the region (depth 3)
+    _, _, ball, (_, report, d_new) = _ball_on_part(
+        (slice(16, 24), slice(12, 20)), (slice(12, 16), slice(12, 20)), [((slice(26, 30), slice(26, 30)), 3.0)])
     assert report["added"] == int(ball.sum()) and report["grown_out_of_region"] == 8
     assert torch.allclose(d_new[ball], torch.full((int(ball.sum()),), 1.9), rtol=1e-3)
 
