@@ -79,6 +79,11 @@ class FirstView:
     def decided(self) -> EditCheck:
         return next(c for c in self.checks if c.decides)
 
+    @property
+    def own(self) -> EditCheck:
+        """The check of `view`'s own edit (`decided` may be another view's)."""
+        return next(c for c in self.checks if c.view == self.view)
+
 
 def mask_areas(regions: List[torch.Tensor], masks2d: Optional[torch.Tensor],
                calibratable: Optional[List[bool]] = None) -> torch.Tensor:

@@ -317,13 +317,14 @@ def new_gaussians_from_depth(
     # ball on a head stands a dozen pixels clear of it, beyond the `dilate_px` the region is grown
     # by): a blob of change of shape that reaches into the region is taken whole.
     grown = blobs_reaching(depth_changed, region)
-    candidates = (region | grown) & depth_changed & torch.isfinite(d_new) & (d_new > 0)
+    reach = region | grown
+    candidates = reach & depth_changed & torch.isfinite(d_new) & (d_new > 0)
     # Outside the region nothing changes: what passes the test there is the noise's rate. A region
     # whose changed pixels are not clearly more than that rate predicts has no change of shape (a
     # recolour), and gets no Gaussians.
-    expected = float(depth_changed[calib_px].float().mean()) * int((region | grown).sum())
+    expected = float(depth_changed[calib_px].float().mean()) * int(reach.sum())
     report.update(noise_changed_pixels=round(expected, 2))
-    if not clearly_changed(int(candidates.sum()), expected, int((region | grown).sum()), cfg):
+    if not clearly_changed(int(candidates.sum()), expected, int(reach.sum()), cfg):
         candidates = torch.zeros_like(candidates)
     grid = torch.zeros_like(candidates)
     grid[:: cfg.stride, :: cfg.stride] = True
@@ -332,7 +333,7 @@ def new_gaussians_from_depth(
     report.update(
         region_pixels=int(region.sum()),
         skipped_unchanged=int((region & ~depth_changed).sum()),
-        grown_out_of_region=int((grown & ~region).sum()),
+        grown_out_of_region=int((reach & ~region).sum()),
         skipped_by_stride=int((candidates & ~grid).sum()),
     )
     if pixels.shape[0] > cfg.max_new:

@@ -13,7 +13,7 @@ import torch
 from gs_regional.config import ConfigError, check_saved_config, need
 from gs_regional.stages.ablation import AblationConfig
 from gs_regional.stages.change import recoloured_fraction
-from gs_regional.stages.first_view import EditCheck, FirstView, check_edit, choose_first_view, mask_areas, stop_message
+from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
 from gs_regional.stages.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
 from gs_regional.stages.localize import (
     LOCALIZATION_FILE, LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
@@ -240,7 +240,7 @@ class RegionalEdit(EditSystemBase):
         if cfg.ablation.initialize and whole:
             log.warning("initialize: every Gaussian is selected (a global edit); no geometry is added from depth")
         elif cfg.ablation.initialize:
-            self.initialize_from_depth(views, regions, areas, next(c for c in first.checks if c.view == first.view))
+            self.initialize_from_depth(views, regions, areas, first.own.changed_px)
         s.edited_views = [s.v_first]
         s.refine_start_count = g.num_gaussians
         self.counts.setdefault("densified", 0)
@@ -255,10 +255,10 @@ class RegionalEdit(EditSystemBase):
         return first
 
     def initialize_from_depth(self, views: List[int], regions: List[torch.Tensor], areas: torch.Tensor,
-                              checked: EditCheck) -> None:
+                              changed_px: float) -> None:
         """§3.2 steps 2-5 (stages/initialize.py), from the view among the first and the next
-        largest regions' (`init.views`) whose depth shows the most change of shape (the first
-        view's `checked` edit says how much it changes); adds the new Gaussians."""
+        largest regions' (`init.views`) whose depth shows the most change of shape (`changed_px`:
+        the pixels the first view's edit changes); adds the new Gaussians."""
         cfg, s, g, scene = self.cfg, self.state, self.geometry, self.scene
         v = s.v_first
         ranked = [views[i] for i in torch.argsort(areas, descending=True, stable=True).tolist() if views[i] != v]
@@ -267,7 +267,7 @@ class RegionalEdit(EditSystemBase):
             order, lambda u: s.first_edit if u == v else self.full_edit(u), lambda u: self.source_renders[u],
             lambda u: scene.cameras[u], self.render_view, lambda images, cams: self.depth_estimator.disparity(images, cameras=cams),
             lambda u: regions[views.index(u)], cfg.init, g.sh_degree, region_means=g.means.detach()[g.mask],
-            changed_px=checked.changed_px)
+            changed_px=changed_px)
         v, edited, params, report, d_new, disp = (found.view, found.edited, found.params, found.report, found.d_new,
                                                   found.disparities)
         if v != s.v_first:  # the view whose depth shows the most change of shape is the first edited view
