@@ -151,7 +151,8 @@ def blobs_less_blurred_rim(blobs: torch.Tensor, changed: torch.Tensor, region: t
     behind the blob's pixels next to it by more than `tolerance` (relative). There the monocular
     estimator's blur mixes the object's depth with the far background's: on 145951 c23 (a big ball
     on a head) 7 such pixels lay 2-5 radii behind the ball, and Gaussians placed on them floated
-    round it in every other view, while the rim pixels at the ball's own depth are its silhouette."""
+    round it in every other view, while the rim pixels at the ball's own depth are its silhouette.
+    A rim pixel with no inner one beside it (a blob a pixel or two thin) is kept."""
     inner = blobs & (region | ~dilate(~changed, 1))
     beside = carry_depth(depth, inner, 1)
     return inner | (blobs & ~inner & (depth <= beside * (1 + tolerance)))
@@ -336,8 +337,9 @@ def new_gaussians_from_depth(
     # Outside the region, and away from what grows out of it, nothing changes: what passes the
     # test there is the noise's rate. A region whose changed pixels are not clearly more than that
     # rate predicts has no change of shape (a recolour), and gets no Gaussians.
-    quiet = calib_px & ~blobs
-    expected = float(depth_changed[quiet].float().mean()) * int(reach.sum())
+    quiet = calib_px & ~blobs  # empty: every calibration pixel lies in such a change, none shows noise
+    rate = float(depth_changed[quiet].float().mean()) if bool(quiet.any()) else 0.0
+    expected = rate * int(reach.sum())
     report.update(noise_changed_pixels=round(expected, 2))
     if not clearly_changed(int(candidates.sum()), expected, int(reach.sum()), cfg):
         candidates = torch.zeros_like(candidates)
@@ -377,7 +379,8 @@ def new_gaussians_from_depth(
         # object's edge are still dropped: the object's own pixels cover it better.
         shows_edit = real_change(edited, unedited, calib_px, cfg.noise_sigmas, explain_blur=False)[0] > 0
         moved = ~near & shows_edit[pixels[:, 0], pixels[:, 1]]
-        expected_shown = float((depth_changed & shows_edit)[quiet].float().mean()) * int(region.sum())
+        shown_rate = float((depth_changed & shows_edit)[quiet].float().mean()) if bool(quiet.any()) else 0.0
+        expected_shown = shown_rate * int(region.sum())
         if int(moved.sum()) < int(near.sum()) or not clearly_changed(int(moved.sum()), expected_shown, int(region.sum()), cfg):
             moved = torch.zeros_like(moved)
         if bool(moved.any()):
