@@ -158,6 +158,11 @@ def blobs_less_blurred_rim(blobs: torch.Tensor, changed: torch.Tensor, region: t
     return inner | (blobs & ~inner & (depth <= beside * (1 + tolerance)))
 
 
+def rate_on(mask: torch.Tensor, where: torch.Tensor) -> float:
+    """The fraction of the `where` pixels that `mask` marks (0 when `where` has none)."""
+    return float(mask[where].float().mean()) if bool(where.any()) else 0.0
+
+
 def clearly_changed(changed: int, expected_by_noise: float, region_pixels: int, cfg: InitConfig) -> bool:
     """Whether `changed` pixels of a region are a change of shape: clearly more than the noise's
     `expected_by_noise` (Poisson: mean + 3 std + 1) and at least `min_changed_fraction` of the
@@ -338,8 +343,7 @@ def new_gaussians_from_depth(
     # test there is the noise's rate. A region whose changed pixels are not clearly more than that
     # rate predicts has no change of shape (a recolour), and gets no Gaussians.
     quiet = calib_px & ~blobs  # empty: every calibration pixel lies in such a change, none shows noise
-    rate = float(depth_changed[quiet].float().mean()) if bool(quiet.any()) else 0.0
-    expected = rate * int(reach.sum())
+    expected = rate_on(depth_changed, quiet) * int(reach.sum())
     report.update(noise_changed_pixels=round(expected, 2))
     if not clearly_changed(int(candidates.sum()), expected, int(reach.sum()), cfg):
         candidates = torch.zeros_like(candidates)
@@ -379,8 +383,7 @@ def new_gaussians_from_depth(
         # object's edge are still dropped: the object's own pixels cover it better.
         shows_edit = real_change(edited, unedited, calib_px, cfg.noise_sigmas, explain_blur=False)[0] > 0
         moved = ~near & shows_edit[pixels[:, 0], pixels[:, 1]]
-        shown_rate = float((depth_changed & shows_edit)[quiet].float().mean()) if bool(quiet.any()) else 0.0
-        expected_shown = shown_rate * int(region.sum())
+        expected_shown = rate_on(depth_changed & shows_edit, quiet) * int(region.sum())
         if int(moved.sum()) < int(near.sum()) or not clearly_changed(int(moved.sum()), expected_shown, int(region.sum()), cfg):
             moved = torch.zeros_like(moved)
         if bool(moved.any()):
