@@ -539,6 +539,46 @@ def test_longer_refinement_densifies_no_more_often(tmp_path):
     assert doubled["psnr_outside_vs_true_edit"] >= base["psnr_outside_vs_true_edit"] - 0.3
 
 
+def test_a_longer_cycle_moves_the_added_gaussians_no_further(tmp_path, monkeypatch):
+    """The views' targets disagree (each draws the object a little elsewhere); at full rates a cycle
+    of 4x the steps carries the added Gaussians about 4x as far after that disagreement (off the
+    object, into the scene outside it). `refine.rate_iterations` keeps a cycle's travel: 4x the steps
+    at a quarter of the rates move them about as far as the normal cycle. (Densification and the
+    last prune off, so that each added row can be followed from initialization to the end.)"""
+    from gs_regional.systems.regional_edit import RegionalEdit
+
+    start, end, rates = {}, {}, {}
+    initialize, finish = RegionalEdit.run_initialize, RegionalEdit.finish_refinement
+    runs = {"normal": (6, 6), "4x": (24, 6), "4x_full_rates": (24, 24)}  # iterations, rate_iterations
+    tag_of = {v: k for k, v in runs.items()}
+
+    def recording_initialize(self):
+        first = initialize(self)
+        tag = tag_of[self.cfg.refine.iterations_per_cycle, self.cfg.refine.rate_iterations]
+        start[tag] = self.geometry.means.detach()[self.geometry.generation > 0].clone()
+        rates[tag] = {g["name"]: g["lr"] for g in self.optimizers().optimizer.param_groups}
+        return first
+
+    def recording_finish(self):
+        end[tag_of[self.cfg.refine.iterations_per_cycle, self.cfg.refine.rate_iterations]] = self.geometry.means.detach()[self.geometry.generation > 0].clone()
+        return finish(self)
+
+    monkeypatch.setattr(RegionalEdit, "run_initialize", recording_initialize)
+    monkeypatch.setattr(RegionalEdit, "finish_refinement", recording_finish)
+    fixed = ["system.densify.enabled=false", "system.refine.prune_added=false", "system.refine.m=4"]
+    for tag, (iterations, rate_iterations) in runs.items():
+        launch(tmp_path, tag, *fixed, f"system.refine.iterations_per_cycle={iterations}",
+               f"system.refine.rate_iterations={rate_iterations}")
+    travel = {tag: float((end[tag] - start[tag]).norm(dim=-1).median()) for tag in runs}
+    assert all(len(start[tag]) >= 5 for tag in runs), {tag: len(start[tag]) for tag in runs}  # depth added them
+    assert rates["4x"]["means"] == pytest.approx(rates["normal"]["means"] / 4)
+    assert rates["4x"]["sh_dc"] == pytest.approx(rates["normal"]["sh_dc"] / 4)
+    assert rates["4x_full_rates"]["means"] == pytest.approx(rates["normal"]["means"])
+    print("median travel of the added Gaussians:", travel)
+    assert travel["4x_full_rates"] > 2 * travel["normal"], travel
+    assert travel["4x"] < 1.5 * travel["normal"], travel
+
+
 def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an_addition(tmp_path, monkeypatch):
     """The first full edit (from pure noise) is the edit the editor shifts the most from view to
     view; taken as the first cycle's target of its view, it pulls the new object towards its own

@@ -53,9 +53,12 @@ def scene_overrides(quick: bool, demo_scene: bool = False) -> List[str]:
 
 
 def regional_budget(cycles: int, iterations: int, m: int, t_schedule: Sequence[int] = (750, 500, 250)) -> List[str]:
-    """Overrides of one regional-edit budget: cycles x iterations per cycle, m views per cycle."""
+    """Overrides of one regional-edit budget: cycles x iterations per cycle at the rates set for
+    that length (a later override of iterations_per_cycle alone lengthens the cycle at the same
+    travel: system.refine.rate_iterations), m views per cycle."""
     t = ",".join(str(x) for x in list(t_schedule)[:cycles])
     return [f"system.refine.cycles={cycles}", f"system.refine.iterations_per_cycle={iterations}",
+            f"system.refine.rate_iterations={iterations}",
             f"system.refine.m={m}", f"system.refine.t_schedule=[{t}]",
             "system.localization.max_views=8"]  # densification: the edit's default, once a cycle
 

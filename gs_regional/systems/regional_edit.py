@@ -248,7 +248,10 @@ class RegionalEdit(EditSystemBase):
         if not self.strategy.shape_may_change:
             log.info("initialize: the depth of view %d shows no change of shape: refinement recolours the region's "
                      "Gaussians and adds none", s.v_first)
-        self.strategy.set_trainable(g, self.optimizers().optimizer.param_groups)
+        groups = self.optimizers().optimizer.param_groups
+        self.strategy.set_trainable(g, groups)
+        for group in groups:  # a longer cycle moves the scene no further (refine.rate_iterations)
+            group["lr"] *= cfg.refine.rate_factor
         self.__dict__.pop("_full_edits", None)  # (each view's full edit is needed by this stage only)
         self.add_time("initialize", time.perf_counter() - t0)
         s.phase = "refine"
