@@ -579,6 +579,47 @@ def test_a_longer_cycle_moves_the_added_gaussians_no_further(tmp_path, monkeypat
     assert travel["4x"] < 1.5 * travel["normal"], travel
 
 
+@pytest.mark.parametrize("placed, kind", [(3, "recolour"), (6, "addition")])
+def test_a_few_gaussians_of_changed_depth_beside_a_recoloured_part_leave_the_edit_a_recolour(tmp_path, monkeypatch,
+                                                                                            placed, kind):
+    """A monocular depth estimator answers a recoloured part's edge with a few pixels of changed
+    depth. Taken as a change of shape, the edit became an addition, whose colours train at the
+    3DGS rate and ungated: the recolour came out half done. Under MIN_SHAPE_GAUSSIANS (5) Gaussians
+    of changed depth beside a region the first edit recolours, they are removed and the edit is a
+    recolour; from 5 on it is an addition. (The demo's head recolour, its depth made to answer
+    with `placed` Gaussians on the head.)"""
+    import dataclasses as dc
+
+    import gs_regional.systems.regional_edit as regional_edit
+    from gs_regional.utils.sh import rgb_to_sh
+
+    real = regional_edit.initialize_from_views
+
+    def answering_the_edge(*args, **kwargs):
+        found = real(*args, **kwargs)
+        assert found.report.get("added", 0) == 0  # the simulated depth sees no change of shape in a recolour
+        means = kwargs["region_means"][:placed] * 1.01
+        params = {"means": means, "quats": torch.tensor([1.0, 0, 0, 0]).repeat(placed, 1),
+                  "log_scales": torch.full((placed, 3), -4.0), "opacity_logits": torch.zeros(placed),
+                  "sh_dc": rgb_to_sh(torch.tensor([[0.8, 0.1, 0.1]]).repeat(placed, 1)),
+                  "sh_rest": torch.zeros(placed, (args[8] + 1) ** 2 - 1, 3)}
+        shape = found.disparities.shape[-2:]
+        return dc.replace(found, params=params, report={**found.report, "added": placed}, d_new=torch.ones(shape))
+
+    monkeypatch.setattr(regional_edit, "initialize_from_views", answering_the_edge)
+    trial = launch(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
+    m = metrics_of(trial)
+    rows = np.load(os.path.join(trial, "save", "edit_mask.npz"))
+    if kind == "recolour":
+        assert m["init"]["recolour_edge"] == placed and m["init"]["added"] == 0, m["init"]
+        assert m["count_recolour_taken"] > 0  # the gate ran: a recolour
+        assert int((rows["generation"] > 0).sum()) == 0
+    else:
+        assert "recolour_edge" not in m["init"] and m["init"]["added"] == placed, m["init"]
+        assert m.get("count_recolour_taken") is None
+        assert int((rows["generation"] > 0).sum()) > 0
+
+
 def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an_addition(tmp_path, monkeypatch):
     """The first full edit (from pure noise) is the edit the editor shifts the most from view to
     view; taken as the first cycle's target of its view, it pulls the new object towards its own

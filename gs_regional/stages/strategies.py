@@ -69,6 +69,13 @@ STILL_DISTINCT = 0.5
 UNEDITED_MIN_AREA = 0.04
 UNEDITED_CANDIDATES = 32  # training views looked at (spread over them)
 
+# An edit whose depth shows a change of shape of fewer Gaussians than this while its first full edit
+# recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
+# depth estimator answers a recoloured part's edge with a few pixels of changed depth. Trained as
+# an addition, such recolours took the colour at the 3DGS rate and ungated (median gain +2.1 dB
+# over 38 truth-suite runs, against +11.8 for the recolours that added nothing).
+MIN_SHAPE_GAUSSIANS = 5
+
 # Keys that became named constants: {key: (constant, module)}.
 _CONSTANTS = {
     "composite_dilate": ("ADDITION_MARGIN_PX", "composite"), "composite_noise_sigmas": ("NOISE_SIGMAS", "change"),
@@ -382,6 +389,13 @@ class Addition(EditStrategy):
             for group in param_groups:
                 if group["name"] == "means":
                     group["lr"] *= ADDED_POSITION_LR_SCALE
+
+
+def is_recolour_edge(report: dict, refine: RefineConfig) -> bool:
+    """Is initialization's change of shape (`report`) only a recolour's edge (MIN_SHAPE_GAUSSIANS)?"""
+    fraction = report.get("recoloured_fraction")
+    return (0 < report.get("added", 0) < MIN_SHAPE_GAUSSIANS and fraction is not None
+            and fraction >= refine.min_recoloured_fraction)
 
 
 def choose_strategy(init_report: Optional[dict], initialized: bool, refine: RefineConfig, ablation: Any,

@@ -20,7 +20,7 @@ from gs_regional.stages.localize import (
 )
 from gs_regional.stages.prune import prune_useless_added
 from gs_regional.stages.state import EditState
-from gs_regional.stages.strategies import EditStrategy, RefineConfig, choose_strategy
+from gs_regional.stages.strategies import EditStrategy, RefineConfig, choose_strategy, is_recolour_edge
 from gs_regional.stages.views import cycle_views, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
@@ -298,6 +298,11 @@ class RegionalEdit(EditSystemBase):
                     log.info("initialize: the first edit recolours %.2f of the region beside the added Gaussians "
                              "(the source keeps its colours below system.refine.min_recoloured_fraction=%s)",
                              report["recoloured_fraction"], cfg.refine.min_recoloured_fraction)
+                if is_recolour_edge(report, cfg.refine):
+                    rows.keep(g, g.generation == 0, optimizer=self.optimizers().optimizer)
+                    log.info("initialize: %d Gaussians of changed depth beside a recoloured region are the recolour's "
+                             "edge, not a new shape: removed; the edit is a recolour", n)
+                    report["recolour_edge"], report["added"], n = n, 0, 0
             self.counts["added_init"] = n
             self.save_image("initialize/depth_new.png", _normalize(1.0 / d_new.clamp_min(1e-6)))
             self.save_image("initialize/initialized_render.png", self.render_view(v)["rgb"].clamp(0, 1))
