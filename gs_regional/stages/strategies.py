@@ -72,8 +72,8 @@ UNEDITED_CANDIDATES = 32  # training views looked at (spread over them)
 # An edit whose depth shows a change of shape of fewer Gaussians than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
 # depth estimator answers a recoloured part's edge with a few pixels of changed depth. Trained as
-# an addition, such recolours took the colour at the 3DGS rate and ungated (median gain +2.1 dB
-# over 38 truth-suite runs, against +11.8 for the recolours that added nothing).
+# an addition (colours at the 3DGS rate, ungated), such recolours came out half done
+# (docs/method.md, "Recolour or change of shape").
 MIN_SHAPE_GAUSSIANS = 5
 
 # Keys that became named constants: {key: (constant, module)}.
@@ -124,8 +124,8 @@ class RefineConfig:
     # rate_iterations / iterations_per_cycle, so that it moves the scene as far as this many steps
     # would. The views' targets disagree (the editor draws each a little differently), and a cycle
     # at full rates for longer fits that disagreement further: the added Gaussians drift off the
-    # object and the selection's rim takes the spill (outside the footprint, 2 to 9 dB lost at twice
-    # the steps). A shorter cycle keeps the rates.
+    # object and the selection's rim takes the spill (docs/method.md, "Refine"). A shorter cycle
+    # keeps the rates.
     rate_iterations: int = 500
     m: int = 20  # nearest cameras edited around the cycle's frontal view
     # The parameters of the selected source Gaussians that an addition leaves as they were: only the
