@@ -82,6 +82,7 @@ DOOR_CASES = [
     ("iterations_per_cycle 0", lambda t: ["system.refine.iterations_per_cycle=0"],
      ["system.refine.iterations_per_cycle", ">= 1"]),
     ("cycles 0", lambda t: ["system.refine.cycles=0"], ["system.refine.cycles", ">= 1"]),
+    ("rate_iterations 0", lambda t: ["system.refine.rate_iterations=0"], ["system.refine.rate_iterations", ">= 1"]),
     ("min_edit_blend above 1", lambda t: ["system.refine.min_edit_blend=1.5"], ["system.refine.min_edit_blend", "[0, 1]"]),
     ("m negative", lambda t: ["system.refine.m=-1"], ["system.refine.m must be an integer >= 0", "got -1"]),
     ("a removed key", lambda t: ["system.refine.composite_min_blend=0.3"], ["system.refine.composite_min_blend' was removed"]),
