@@ -265,3 +265,112 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
     assert run([front, side], changed_px=enough).report["views_checked"] == [front]
     assert run([front, side], changed_px=1.01 * enough).report["views_checked"] == [front, side]
     assert run([side, front], changed_px=alone[side] / PLACED_ENOUGH + 1).view == front
+
+
+def test_a_new_point_is_kept_only_where_the_other_edited_views_see_the_edit_there():
+    """seen_as_edit on a known answer: two cameras facing each other across the origin, a point
+    at the origin. Kept when a view that sees it shows the edit on its pixel; dropped when that
+    view sees the place and its edit shows nothing there (a floater from one view's jitter), or
+    when no view sees it at all; a view whose surface lies in front of the point has no say."""
+    from gs_regional.sim.scene import look_at
+    from gs_regional.stages.initialize import seen_as_edit
+
+    cams = [look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), 32, 32), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), 32, 32)]
+    point = torch.zeros(1, 3)
+    u, v, z = cams[0].project(point)
+    assert abs(float(u) - 16) < 1e-4 and abs(float(v) - 16) < 1e-4 and abs(float(z) - 3) < 1e-4
+    far = [torch.full((32, 32), float("inf"))] * 2  # nothing rendered: every view sees the point
+    shows, empty = torch.zeros(32, 32, dtype=torch.bool), torch.zeros(32, 32, dtype=torch.bool)
+    shows[16, 16] = True
+    assert bool(seen_as_edit(point, cams, [shows, shows], far)[0])
+    assert not bool(seen_as_edit(point, cams, [shows, empty], far)[0])  # the second view saw nothing there
+    assert not bool(seen_as_edit(point, cams[:0], [], [])[0])  # no view supports it
+    hidden = torch.full((32, 32), 2.0)  # the second view's surface at depth 2, in front of the point
+    assert bool(seen_as_edit(point, cams, [shows, empty], [far[0], hidden])[0])
+
+
+def _ball_on_the_head():
+    """A synthetic scene with a ball resting on the figure's head as the true edit, the cameras,
+    and the ball's centre and radius."""
+    from gs_regional.sim.splat_truth import resting_contact, sphere_gaussians, with_added
+    from gs_regional.sim.truth import GroundTruth
+
+    head = make_edit("recolor")
+    source = head.source
+    top = source.means.detach()[head.region]
+    up = torch.tensor([0.0, 1.0, 0.0])
+    r = 0.5 * float((top.max(0).values - top.min(0).values).max()) / 2
+    through = top.mean(0)
+    height, _ = resting_contact(source, through, up, r)
+    centre = through + (height - 0.25 * r) * up
+    ball = sphere_gaussians(centre, r, 400, [0.9, 0.1, 0.8], up, 0, source.sh_degree)
+    edited, new_region = with_added(source, ball, head.region)
+    gt = GroundTruth(source=source, edited=edited, region=head.region, new_region=new_region, front=head.front,
+                     center=head.center, name="add", prompt="put a pink ball on his head")
+    return gt, make_cameras(40, 96, 96)[0], centre, r
+
+
+def test_a_cycle_places_the_side_of_an_added_ball_that_the_first_view_did_not_see():
+    """An addition the editor draws whole in some views and only partly in the scene: the scene
+    holds the true ball's half that faces the first view, and two side views' targets (partial
+    edits, composited, as a refinement cycle makes them) draw the whole ball. The Gaussians
+    `new_gaussians_in_holes` places lie on the true ball's surface, on the half the scene lacked.
+    With the whole ball in the scene there is nothing to place."""
+    from gs_regional.metrics.region import render_selection
+    from gs_regional.stages.composite import composite_target
+    from gs_regional.stages.initialize import HOLE_MAX_DISTANCE, new_gaussians_in_holes
+
+    gt, cams, centre, r = _ball_on_the_head()
+    n = len(gt.source)
+    first = cams[VIEW].center
+    towards_first = torch.nn.functional.normalize(first - centre, dim=0)
+    ball_means = gt.edited.means.detach()[n:]
+    facing = (ball_means - centre) @ towards_first > 0
+    side = [i for i, c in enumerate(cams)
+            if abs(float(torch.nn.functional.normalize(c.center - centre, dim=0) @ towards_first)) < 0.35][:2]
+    assert len(side) == 2
+    renderer = find("torch-rasterizer")()
+    editor = find("simulated-editor")({"seed": 0})
+    depth = find("simulated-depth")({})
+    editor.attach_ground_truth(gt)
+    depth.attach_ground_truth(gt)
+
+    def place(scene_rows: torch.Tensor) -> torch.Tensor:
+        current = gt.edited.select(scene_rows)
+        added_rows = torch.arange(len(current)) >= n
+        views = []
+        with torch.no_grad():
+            for i in side:
+                cam = cams[i]
+                out = renderer.render(current, cam)
+                source = renderer.render(gt.source, cam)["rgb"]
+                edited = editor.edit(out["rgb"][None], source[None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
+                added = render_selection(current, renderer, cam, added_rows)
+                region = render_selection(gt.source, renderer, cam, gt.region)
+                target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"].reshape(region.shape) > 0.5)
+                shows = (target - source).abs().amax(-1) > 2.0 / 255
+                surface = torch.where(out["alpha"].reshape(region.shape) > 0.5, out["depth"].reshape(region.shape),
+                                      torch.full_like(region, float("inf")))
+                views.append((cam, out, target, shows, added, (region > 0.5) | (added > 0.05), surface))
+            placed = []
+            for k, (cam, out, target, shows, added, region, _) in enumerate(views):
+                other = [v for j, v in enumerate(views) if j != k]
+                params = new_gaussians_in_holes(
+                    cam, {"rgb": out["rgb"].clamp(0, 1), "depth": out["depth"].reshape(region.shape),
+                          "alpha": out["alpha"].reshape(region.shape)},
+                    target, shows, added, region, depth.disparity(torch.stack([out["rgb"].clamp(0, 1), target]), cameras=[cam, cam]),
+                    ([v[0] for v in other], [v[3] for v in other], [v[6] for v in other]), InitConfig(), gt.source.sh_degree,
+                    current.means.detach()[added_rows], HOLE_MAX_DISTANCE)
+                if params:
+                    placed.append(params["means"])
+        return torch.cat(placed) if placed else torch.zeros(0, 3)
+
+    half = torch.cat([torch.ones(n, dtype=torch.bool), facing])
+    placed = place(half)
+    assert len(placed) >= 5
+    off_surface = ((placed - centre).norm(dim=1) - r).abs() / r
+    assert float(off_surface.median()) < 0.35
+    assert float((off_surface < 0.6).float().mean()) > 0.9
+    lacked = (placed - centre) @ towards_first < 0.25 * r  # on the half the scene lacked (or its rim)
+    assert float(lacked.float().mean()) > 0.8
+    assert len(place(torch.ones(len(gt.edited), dtype=torch.bool))) == 0

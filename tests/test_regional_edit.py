@@ -177,6 +177,7 @@ def test_metrics_json_has_the_region_aware_scores(runs, tmp_path):
         m = metrics_of(trial)
         assert m["warnings"] == []
         assert m["gaussians_before"] + m["gaussians_added"] - m["gaussians_pruned"] == m["gaussians_after"]
+        assert m["gaussians_added"] == sum(m.get(k, 0) for k in ("count_added_init", "count_added_cycles", "count_densified"))
         assert m["true_gaussians_added"] == 859  # the moustache
         assert m["ply_bytes"] == os.path.getsize(Path(trial) / "save" / "edited.ply")
         assert m["source_ply_bytes"] == os.path.getsize(tmp_path / "source.ply")

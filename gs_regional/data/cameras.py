@@ -49,13 +49,17 @@ class Camera:
         t = self.world_to_camera[:3, 3].double()
         return (-R.T @ t).float()
 
-    def in_view(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
-        """(N,) bool: which world points (N, 3) lie in front of the camera and inside its image."""
+    def project(self, points: torch.Tensor, near: float = 1e-3) -> tuple:
+        """Image coordinates (u, v) in pixels and camera-space depth z, each (N,), of world points
+        (N, 3) (points behind `near` are projected as if at `near`)."""
         w2c = self.world_to_camera.to(points.device, points.dtype)
         p = points @ w2c[:3, :3].T + w2c[:3, 3]
         z = p[:, 2]
-        u = self.fx * p[:, 0] / z.clamp_min(near) + self.cx
-        v = self.fy * p[:, 1] / z.clamp_min(near) + self.cy
+        return self.fx * p[:, 0] / z.clamp_min(near) + self.cx, self.fy * p[:, 1] / z.clamp_min(near) + self.cy, z
+
+    def in_view(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
+        """(N,) bool: which world points (N, 3) lie in front of the camera and inside its image."""
+        u, v, z = self.project(points, near)
         return (z > near) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
 
     def scaled(self, factor: float) -> "Camera":

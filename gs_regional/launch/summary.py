@@ -98,6 +98,8 @@ def _gaussians(m: Dict[str, Any]) -> str:
         parts = [f"{m['gaussians_before']:,} before"]
         if "count_added_init" in m:
             parts.append(f"+{m['count_added_init']:,} from depth")
+        if m.get("count_added_cycles"):
+            parts.append(f"+{m['count_added_cycles']:,} from the cycles' depth")
         if "count_densified" in m:
             parts.append(f"+{m['count_densified']:,} densified")
         if m.get("count_pruned"):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, List, Optional
 
 import torch
@@ -475,3 +475,62 @@ def initialize_from_views(
     found.report["views_checked"] = order[: k + 1]
     found.report["views_placed"] = placed  # the Gaussians each checked view's depth placed
     return found
+
+
+def seen_as_edit(points: torch.Tensor, cameras: List[Camera], shows: List[torch.Tensor], surface: List[torch.Tensor],
+                 tolerance: float = 0.02, min_support: int = 1) -> torch.Tensor:
+    """(K,) bool: the world `points` that at least `min_support` views see as part of the edit and
+    none contradicts. A view sees a point when it projects into its image in front of what the view
+    renders there (`surface` (H, W): the current scene's depth, +inf where it renders nothing;
+    `tolerance` relative); it supports the point when its edit shows a change on that pixel
+    (`shows` (H, W) bool) and contradicts it otherwise: the view sees that place, and the edit put
+    nothing there. Behind the surface a view has no say."""
+    support = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+    contradicted = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    for cam, show, depth in zip(cameras, shows, surface):
+        u, v, z = cam.project(points)
+        inside = (z > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        col = u.long().clamp(0, cam.width - 1)
+        row = v.long().clamp(0, cam.height - 1)
+        seen = inside & (z < depth[row, col] * (1 - tolerance))
+        support += (seen & show[row, col]).long()
+        contradicted |= seen & ~show[row, col]
+    return (support >= min_support) & ~contradicted
+
+
+# What a refinement cycle places of an added object lies within this many times the size of what is
+# already added (as `InitConfig.max_distance` measures it): the side of an object that the first
+# view's depth did not see lies up to the object's own size from the side it saw.
+HOLE_MAX_DISTANCE = 1.0
+
+
+def new_gaussians_in_holes(
+    camera: Camera,
+    current: dict,  # the current scene's render of the view: "rgb" (H, W, 3) in [0, 1], "depth", "alpha"
+    target: torch.Tensor,  # (H, W, 3) the view's refinement target (an edited view, composited)
+    shows: torch.Tensor,  # (H, W) bool: where the target differs from the source render
+    added: torch.Tensor,  # (H, W) how much of each pixel the Gaussians the edit added cover
+    region: torch.Tensor,  # (H, W) bool: the 2D region (the selection's render and the added Gaussians')
+    disparities: torch.Tensor,  # (2, H, W) monocular disparities of `current["rgb"]` and `target`
+    others: tuple,  # (cameras, shows, surfaces) of the cycle's other edited views, for `seen_as_edit`
+    cfg: InitConfig,
+    sh_degree: int,
+    region_means: torch.Tensor,  # (M, 3) what is placed stays within `max_distance` (as InitConfig's) of these
+    max_distance: float = 0.5,
+) -> dict:
+    """New Gaussians for the part of an added object that a refinement target shows and the
+    current scene lacks: `new_gaussians_from_depth` with the current render as the unedited view
+    (its depth changes only where the target draws something nearer), kept where the target's
+    change lies a pixel inside the object's missing part (`shows` where `added` < 0.5, eroded: a
+    view's target draws the object a pixel or two off, and that offset is its rim) and the other
+    edited views see it as part of the edit (`seen_as_edit`). {} when none."""
+    params, _, _ = new_gaussians_from_depth(
+        camera, current["rgb"], target, region, current["depth"], current["alpha"], disparities[0], disparities[1],
+        replace(cfg, max_distance=max_distance), sh_degree, region_means=region_means)
+    if not params or not params["means"].shape[0]:
+        return {}
+    hole = ~dilate(~(shows & (added < 0.5)), 1)
+    u, v, _ = camera.project(params["means"])
+    keep = hole[v.long().clamp(0, camera.height - 1), u.long().clamp(0, camera.width - 1)]
+    keep &= seen_as_edit(params["means"], *others)
+    return {name: value[keep] for name, value in params.items()} if bool(keep.any()) else {}

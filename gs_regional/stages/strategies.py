@@ -364,6 +364,12 @@ class Addition(EditStrategy):
     def t_schedule(self) -> List[int]:
         return list(self.cfg.t_schedule if self.cfg.shape_t_schedule is None else self.cfg.shape_t_schedule)
 
+    def after_edits(self, system) -> None:
+        """Gaussians for what the cycle's targets show of the new object and the scene lacks (its
+        other sides: the first view's depth placed the side it sees)."""
+        if self.regional and self.ablation.initialize:
+            system.fill_from_cycle_depth()
+
     def first_view_is_target(self, neighbours: int) -> bool:
         # A full edit from pure noise places the object the farthest from where the other views put
         # it; as a target it pulls the object towards its own offset. Its neighbours' partial edits

@@ -368,7 +368,7 @@ class EditSystemBase(GaussianSystem):
     def size_metrics(self) -> Dict[str, object]:
         """Gaussians added and pruned by this run (and by the true edit, if known), and the bytes
         of save/edited.ply against the source scene written in the same layout."""
-        added = self.counts.get("added_init", 0) + self.counts.get("densified", 0)
+        added = sum(self.counts.get(k, 0) for k in ("added_init", "added_cycles", "densified"))
         pruned = self.counts.get("pruned", 0)
         after = self.geometry.num_gaussians
         if self.n_source + added - pruned != after:

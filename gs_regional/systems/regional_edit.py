@@ -4,6 +4,7 @@ What differs between a recolour and an addition is the strategy chosen after ini
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Dict, List, Optional
@@ -14,7 +15,10 @@ from gs_regional.config import ConfigError, check_saved_config, need
 from gs_regional.stages.ablation import AblationConfig
 from gs_regional.stages.change import recoloured_fraction
 from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
-from gs_regional.stages.initialize import InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views
+from gs_regional.stages.initialize import (
+    HOLE_MAX_DISTANCE, InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views,
+    new_gaussians_in_holes,
+)
 from gs_regional.stages.localize import (
     LOCALIZATION_FILE, LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
 )
@@ -314,6 +318,46 @@ class RegionalEdit(EditSystemBase):
             )
         self.save_image("initialize/depth_unedited.png", _normalize(disp[0]))
         self.save_image("initialize/depth_edited.png", _normalize(disp[1]))
+
+    @torch.no_grad()
+    def fill_from_cycle_depth(self) -> int:
+        """An addition's Gaussians for what this cycle's targets show of the new object and the
+        scene still lacks (`new_gaussians_in_holes`), view by view, each view seeing what the ones
+        before it placed: the first view's depth places only the side of the object it sees.
+        Returns how many were added (metrics.json `count_added_cycles`)."""
+        cfg, s, g, scene = self.cfg, self.state, self.geometry, self.scene
+        views = list(s.cycle_views)
+        cams = [scene.cameras[j].to(self.device) for j in views]
+        renders = [self.render_view(j) for j in views]
+        # Where each target shows the edit. Not widened by the pixel a drawing may be off by: a view
+        # then no longer contradicts what another placed beside the object (the demo's unedited
+        # region took some: 120 -> 59 dB).
+        shows = [(s.cycle_targets[k] - self.source_renders[j]).abs().amax(-1) > 2.0 / 255 for k, j in enumerate(views)]
+        surfaces = [torch.where(r["alpha"] > 0.5, r["depth"], torch.full_like(r["depth"], math.inf)) for r in renders]
+        total = 0
+        for k, j in enumerate(views):
+            # near what the edit added so far; when depth placed nothing yet, near the selection
+            added_rows = g.generation > 0
+            anchor, reach = (added_rows, HOLE_MAX_DISTANCE) if bool(added_rows.any()) else (g.mask, cfg.init.max_distance)
+            out = dict(self.render_view(j) if total else renders[k])
+            out["rgb"] = self.as_image(out["rgb"], "the current renders")
+            added = render_selection(g, self.renderer, cams[k], g.generation > 0)
+            others = [i for i in range(len(views)) if i != k]
+            params = new_gaussians_in_holes(
+                cams[k], out, s.cycle_targets[k], shows[k], added, (self.source_region(j) > 0.5) | (added > 0.05),
+                self.depth_estimator.disparity(torch.stack([out["rgb"], s.cycle_targets[k]]), cameras=[cams[k]] * 2),
+                ([cams[i] for i in others], [shows[i] for i in others], [surfaces[i] for i in others]),
+                cfg.init, g.sh_degree, g.means.detach()[anchor], reach)
+            params = parallel.from_rank_zero(self, params)  # one geometry on every process
+            if params:
+                rows.append(g, {name: value.to(self.device) for name, value in params.items()},
+                            optimizer=self.optimizers().optimizer, mask=True, generation=1)
+                total += params["means"].shape[0]
+        self.counts["added_cycles"] = self.counts.get("added_cycles", 0) + total
+        if total:
+            log.info("refine: added %d Gaussians where this cycle's edits show the new object and the scene lacks it",
+                     total)
+        return total
 
     def choose_strategy(self) -> EditStrategy:
         cfg = self.cfg
