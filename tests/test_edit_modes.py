@@ -6,11 +6,20 @@ from trial_helpers import launch, metrics_of
 
 
 def test_stop_after_localize_writes_the_localization_figures_and_the_source_unchanged(tmp_path):
-    m = metrics_of(launch(tmp_path, "localize-only", "system.stop_after=localize"))
+    trial = launch(tmp_path, "localize-only", "system.stop_after=localize")
+    m = metrics_of(trial)
     assert m["stopped"] == "stop_after=localize" and m["warnings"] == []
     for key in ("mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "view_agreement", "view_weights"):
         assert key in m, key
     assert m["gaussians_added"] == 0 and m["psnr_unedited"] == 120.0 and "v_first" not in m
+    # scripts/relift.py lifts the saved masks again: at the method's edge ratio it finds the run's figures
+    from gs_regional.bench.relift import relift
+    from gs_regional.stages.localize import EDGE_COLOUR_RATIO
+
+    again = relift(str(trial), [EDGE_COLOUR_RATIO, 0.0])
+    assert again[EDGE_COLOUR_RATIO]["masks"]["mask_iou"] == pytest.approx(m["mask_iou"], abs=1e-9)
+    assert again[EDGE_COLOUR_RATIO]["exact"]["mask_iou"] == pytest.approx(m["mask_iou_exact_masks"], abs=1e-9)
+    assert again[0.0]["masks"]["mask_recall"] >= again[EDGE_COLOUR_RATIO]["masks"]["mask_recall"]
 
 
 def test_a_checkpoint_written_with_a_retired_setting_stops_the_resume_with_one_line():

@@ -1,0 +1,15 @@
+#!/usr/bin/env python
+"""Saved localizations lifted again, the edge colour test at other ratios (gs_regional/bench/relift.py).
+
+    python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5]
+"""
+import os
+import sys
+
+# Idle OpenMP threads sleep instead of spinning (see launch.py); set before torch is imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from gs_regional.bench.relift import main  # noqa: E402
+
+if __name__ == "__main__":
+    sys.exit(main())
