@@ -336,31 +336,30 @@ def test_a_cycle_places_the_side_of_an_added_ball_that_the_first_view_did_not_se
     depth.attach_ground_truth(gt)
 
     def place(scene_rows: torch.Tensor) -> torch.Tensor:
-        current = gt.edited.select(scene_rows)
-        added_rows = torch.arange(len(current)) >= n
+        scene = gt.edited.select(scene_rows)
+        added_rows = torch.arange(len(scene)) >= n
         views = []
         with torch.no_grad():
             for i in side:
                 cam = cams[i]
-                out = renderer.render(current, cam)
+                out = renderer.render(scene, cam)
                 source = renderer.render(gt.source, cam)["rgb"]
                 edited = editor.edit(out["rgb"][None], source[None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
-                added = render_selection(current, renderer, cam, added_rows)
+                added = render_selection(scene, renderer, cam, added_rows)
                 region = render_selection(gt.source, renderer, cam, gt.region)
-                target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"].reshape(region.shape) > 0.5)
+                target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"] > 0.5)
                 shows = (target - source).abs().amax(-1) > 2.0 / 255
-                surface = torch.where(out["alpha"].reshape(region.shape) > 0.5, out["depth"].reshape(region.shape),
-                                      torch.full_like(region, float("inf")))
+                surface = torch.where(out["alpha"] > 0.5, out["depth"], torch.full_like(region, float("inf")))
                 views.append((cam, out, target, shows, added, (region > 0.5) | (added > 0.05), surface))
             placed = []
             for k, (cam, out, target, shows, added, region, _) in enumerate(views):
                 other = [v for j, v in enumerate(views) if j != k]
+                current = {"rgb": out["rgb"].clamp(0, 1), "depth": out["depth"], "alpha": out["alpha"]}
                 params = new_gaussians_in_holes(
-                    cam, {"rgb": out["rgb"].clamp(0, 1), "depth": out["depth"].reshape(region.shape),
-                          "alpha": out["alpha"].reshape(region.shape)},
-                    target, shows, added, region, depth.disparity(torch.stack([out["rgb"].clamp(0, 1), target]), cameras=[cam, cam]),
+                    cam, current, target, shows, added, region,
+                    depth.disparity(torch.stack([current["rgb"], target]), cameras=[cam, cam]),
                     ([v[0] for v in other], [v[3] for v in other], [v[6] for v in other]), InitConfig(), gt.source.sh_degree,
-                    current.means.detach()[added_rows], HOLE_MAX_DISTANCE)
+                    scene.means.detach()[added_rows], HOLE_MAX_DISTANCE)
                 if params:
                     placed.append(params["means"])
         return torch.cat(placed) if placed else torch.zeros(0, 3)
