@@ -16,19 +16,12 @@ def report(trial: str, min_change: float = 0.02) -> dict:
 
     import torch
 
-    from gs_regional.config import load_config
+    from gs_regional.bench.launching import trial_truth
     from gs_regional.geometry.gaussian_model import GaussianModel
     from gs_regional.launch.view import read_edit_rows
-    from gs_regional.registry import find, load_builtins
     from gs_regional.utils.sh import sh_to_rgb
 
-    load_builtins()
-    cfg = load_config(os.path.join(trial, "configs", "parsed.yaml"))
-    dm = find(cfg.data_type, kind="data")(cfg.data)
-    dm.setup("fit")
-    gt = dm.scene.ground_truth
-    if gt is None:
-        raise SystemExit(f"{trial}: its scene ({cfg.data_type}) has no ground truth")
+    gt = trial_truth(trial)[1].ground_truth
     out = GaussianModel.from_ply(os.path.join(trial, "save", "edited.ply"))
     rows, where = read_edit_rows(Path(trial), out.num_gaussians)
     if rows is None:

@@ -31,3 +31,19 @@ def run(out: str, name: str, config: str, *overrides: str) -> dict:
     m["wall_seconds"] = time.perf_counter() - t0
     m["trial"] = trial
     return m
+
+
+def trial_truth(trial: str) -> tuple:
+    """(config, scene) of a finished trial: its configs/parsed.yaml and its data module's scene set
+    up again, whose `ground_truth` the trial was scored against (exits naming the trial when its
+    scene has none)."""
+    from gs_regional.config import load_config
+    from gs_regional.registry import find, load_builtins
+
+    load_builtins()
+    cfg = load_config(os.path.join(trial, "configs", "parsed.yaml"))
+    dm = find(cfg.data_type, kind="data")(cfg.data)
+    dm.setup("fit")
+    if dm.scene.ground_truth is None:
+        raise SystemExit(f"{trial}: its scene ({cfg.data_type}) has no ground truth")
+    return cfg, dm.scene

@@ -26,25 +26,19 @@ def relift(trial: str, ratios) -> dict:
     import numpy as np
     import torch
 
-    from gs_regional.config import load_config
+    from gs_regional.bench.launching import trial_truth
+    from gs_regional.config import parse_structured
     from gs_regional.metrics.region import mask_metrics
-    from gs_regional.registry import find, load_builtins
     from gs_regional.renderers.select import make_renderer
     from gs_regional.stages.localize import LOCALIZATION_FILE, LocalizeConfig, localize_gaussians
-    from gs_regional.config import parse_structured
 
-    load_builtins()
-    cfg = load_config(os.path.join(trial, "configs", "parsed.yaml"))
-    dm = find(cfg.data_type, kind="data")(cfg.data)
-    dm.setup("fit")
-    gt = dm.scene.ground_truth
-    if gt is None:
-        raise SystemExit(f"{trial}: its scene ({cfg.data_type}) has no ground truth")
+    cfg, scene = trial_truth(trial)
+    gt = scene.ground_truth
     saved = np.load(os.path.join(trial, "save", LOCALIZATION_FILE))
     if "masks" not in saved:
         raise SystemExit(f"{trial}: its localization saved no 2D masks (a given selection, or no lift)")
     renderer = make_renderer(cfg.system.renderer_type, cfg.system.get("renderer", {}), torch.device("cpu"))
-    cameras = [dm.scene.cameras[int(i)] for i in saved["views"]]
+    cameras = [scene.cameras[int(i)] for i in saved["views"]]
     model = gt.source
     with torch.no_grad():
         images = torch.stack([renderer.render(model, cam)["rgb"].clamp(0, 1) for cam in cameras])
