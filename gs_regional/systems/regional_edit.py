@@ -330,8 +330,7 @@ class RegionalEdit(EditSystemBase):
         cams = [scene.cameras[j].to(self.device) for j in views]
         renders = [self.render_view(j) for j in views]
         # Where each target shows the edit. Not widened by the pixel a drawing may be off by: a view
-        # then no longer contradicts what another placed beside the object (the demo's unedited
-        # region took some: 120 -> 59 dB).
+        # would then no longer contradict what another placed beside the object (docs/decisions.md).
         shows = [(s.cycle_targets[k] - self.source_renders[j]).abs().amax(-1) > 2.0 / 255 for k, j in enumerate(views)]
         surfaces = [torch.where(r["alpha"] > 0.5, r["depth"], torch.full_like(r["depth"], math.inf)) for r in renders]
         total = 0
@@ -341,7 +340,7 @@ class RegionalEdit(EditSystemBase):
             anchor, reach = (added_rows, HOLE_MAX_DISTANCE) if bool(added_rows.any()) else (g.mask, cfg.init.max_distance)
             out = dict(self.render_view(j) if total else renders[k])
             out["rgb"] = self.as_image(out["rgb"], "the current renders")
-            added = render_selection(g, self.renderer, cams[k], g.generation > 0)
+            added = render_selection(g, self.renderer, cams[k], added_rows)
             others = [i for i in range(len(views)) if i != k]
             params = new_gaussians_in_holes(
                 cams[k], out, s.cycle_targets[k], shows[k], added, (self.source_region(j) > 0.5) | (added > 0.05),
