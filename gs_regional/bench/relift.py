@@ -49,7 +49,7 @@ def relift(trial: str, ratios) -> dict:
         for ratio in ratios:
             lift = dict(lc.lift(), edge_ratio=ratio, images=images)
             lifted = localize_gaussians(model, renderer, cameras, masks, reuse=first, **lift)
-            first = first or lifted
+            first = lifted if first is None else first  # its pixel weights and neighbourhoods, reused
             exact = [v.splat(gt.region.float()[:, None])[..., 0].clamp(0, 1) > 0.5 for v in lifted["views"]]
             out[ratio] = {"masks": mask_metrics(lifted["selected"], gt.region),
                           "exact": mask_metrics(localize_gaussians(model, renderer, cameras, exact, reuse=first, **lift)[

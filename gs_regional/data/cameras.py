@@ -57,10 +57,17 @@ class Camera:
         z = p[:, 2]
         return self.fx * p[:, 0] / z.clamp_min(near) + self.cx, self.fy * p[:, 1] / z.clamp_min(near) + self.cy, z
 
+    def pixels(self, points: torch.Tensor, near: float = 1e-3) -> tuple:
+        """(row, col, z, inside), each (N,), of world points (N, 3): the pixel each falls on (clamped
+        into the image), its camera-space depth, and whether it lies in front of the camera and
+        inside the image."""
+        u, v, z = self.project(points, near)
+        inside = (z > near) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return v.long().clamp(0, self.height - 1), u.long().clamp(0, self.width - 1), z, inside
+
     def in_view(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
         """(N,) bool: which world points (N, 3) lie in front of the camera and inside its image."""
-        u, v, z = self.project(points, near)
-        return (z > near) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return self.pixels(points, near)[3]
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera with the image resized by `factor` (0.25 = 4x smaller)."""

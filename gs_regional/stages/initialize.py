@@ -478,24 +478,21 @@ def initialize_from_views(
 
 
 def seen_as_edit(points: torch.Tensor, cameras: List[Camera], shows: List[torch.Tensor], surface: List[torch.Tensor],
-                 tolerance: float = 0.02, min_support: int = 1) -> torch.Tensor:
-    """(K,) bool: the world `points` that at least `min_support` views see as part of the edit and
-    none contradicts. A view sees a point when it projects into its image in front of what the view
+                 tolerance: float = 0.02) -> torch.Tensor:
+    """(K,) bool: the world `points` that a view sees as part of the edit and none contradicts.
+    A view sees a point when it projects into its image in front of what the view
     renders there (`surface` (H, W): the current scene's depth, +inf where it renders nothing;
     `tolerance` relative); it supports the point when its edit shows a change on that pixel
     (`shows` (H, W) bool) and contradicts it otherwise: the view sees that place, and the edit put
     nothing there. Behind the surface a view has no say."""
-    support = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-    contradicted = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    supported = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    contradicted = torch.zeros_like(supported)
     for cam, show, depth in zip(cameras, shows, surface):
-        u, v, z = cam.project(points)
-        inside = (z > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        col = u.long().clamp(0, cam.width - 1)
-        row = v.long().clamp(0, cam.height - 1)
+        row, col, z, inside = cam.pixels(points)
         seen = inside & (z < depth[row, col] * (1 - tolerance))
-        support += (seen & show[row, col]).long()
+        supported |= seen & show[row, col]
         contradicted |= seen & ~show[row, col]
-    return (support >= min_support) & ~contradicted
+    return supported & ~contradicted
 
 
 # What a refinement cycle places of an added object lies within this many times the size of what is
@@ -530,7 +527,6 @@ def new_gaussians_in_holes(
     if not params or not params["means"].shape[0]:
         return {}
     hole = ~dilate(~(shows & (added < 0.5)), 1)
-    u, v, _ = camera.project(params["means"])
-    keep = hole[v.long().clamp(0, camera.height - 1), u.long().clamp(0, camera.width - 1)]
-    keep &= seen_as_edit(params["means"], *others)
+    row, col, _, _ = camera.pixels(params["means"])
+    keep = hole[row, col] & seen_as_edit(params["means"], *others)
     return {name: value[keep] for name, value in params.items()} if bool(keep.any()) else {}
