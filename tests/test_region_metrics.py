@@ -1,4 +1,5 @@
-"""Region-aware metrics (gs_regional.metrics.region) on images with known answers."""
+"""Region-aware metrics (gs_regional.metrics.region, gs_regional.metrics.truth) on known answers."""
+import copy
 import math
 
 import pytest
@@ -7,6 +8,10 @@ import torch
 from gs_regional.metrics.region import (
     error_map, footprint, mask_metrics, masked_psnr, masked_ssim, region_scores, silhouette_split, unedited_scores,
 )
+from gs_regional.metrics.truth import TruthScoring
+from gs_regional.registry import find
+from gs_regional.sim.scene import make_cameras, make_edit
+
 
 
 def _db(mse: float) -> float:
@@ -107,3 +112,48 @@ def test_mask_metrics_known_and_empty():
     assert mask_metrics(empty, empty) == {"mask_iou": None, "mask_precision": None, "mask_recall": None}
     with pytest.raises(ValueError, match="shape"):
         mask_metrics(some, torch.zeros(4, dtype=torch.bool))
+
+
+def test_a_recolours_shortfall_is_laid_at_the_stage_that_lost_it():
+    """`recolour_rows` on known answers: a result halfway to the true colours on every region
+    Gaussian has removed 3/4 of doing nothing's error, all of what is left on the rows that
+    trained; a result that is right except where the gate declined leaves all of its error there;
+    one that localized nothing leaves it on the unselected rows; a result with rows added is not
+    judged."""
+    gt = make_edit("recolor", n_object=1500, n_background=500)
+    cams, _ = make_cameras(n=6, width=48, height=48)
+    scoring = TruthScoring(gt, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
+    views = list(range(len(cams)))
+    region = gt.region
+    source, true = gt.source.sh_dc.detach(), gt.edited.sh_dc.detach()
+    assert int(region.sum()) > 30 and bool(((true - source).abs().sum(-1) > 0)[region].all())
+
+    def result(sh_dc):
+        model = copy.deepcopy(gt.source)
+        with torch.no_grad():
+            model.sh_dc.copy_(sh_dc)
+        return model
+
+    everything, nothing = torch.ones_like(region), torch.zeros_like(region)
+    # sh_to_rgb is affine in sh_dc: the DC halfway between is the colour halfway between
+    half = scoring.recolour_rows(result((source + true) / 2), everything, everything, views)
+    assert half["recolour_done"] == pytest.approx(0.75, abs=1e-6)
+    assert half["recolour_left_taken"] == pytest.approx(1.0) and half["recolour_left_declined"] == 0.0
+
+    declined = region & (torch.arange(len(region)) % 2 == 0)  # half the region's rows, declined
+    gated = scoring.recolour_rows(result(torch.where(declined[:, None], source, true)), everything, ~declined, views)
+    assert 0.0 < gated["recolour_done"] < 1.0
+    assert gated["recolour_left_declined"] == pytest.approx(1.0)
+    assert gated["recolour_left_unselected"] == 0.0 and gated["recolour_left_taken"] == 0.0
+
+    missed = scoring.recolour_rows(result(source), nothing, nothing, views)
+    assert missed["recolour_done"] == pytest.approx(0.0, abs=1e-6) and missed["recolour_left_unselected"] == pytest.approx(1.0)
+
+    done = scoring.recolour_rows(result(true), region, region, views)
+    assert done["recolour_done"] == pytest.approx(1.0) and done["recolour_left_taken"] is None
+
+    pruned = copy.deepcopy(gt.source).select(torch.arange(1, len(region)))  # a result without the first row
+    assert scoring.recolour_rows(pruned, everything[1:], everything[1:], views) == {}
+    added = make_edit("add", n_object=1500, n_background=500)  # a true edit that adds rows
+    adding = TruthScoring(added, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
+    assert adding.recolour_rows(copy.deepcopy(added.source), everything, everything, views) == {}

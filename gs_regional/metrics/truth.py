@@ -12,6 +12,7 @@ from gs_regional.geometry import rows
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.metrics.region import SEEN_MIN_WEIGHT, footprint, mask_metrics, region_scores, render_selection
 from gs_regional.utils.image import dilate
+from gs_regional.utils.sh import sh_to_rgb
 
 
 
@@ -86,6 +87,39 @@ class TruthScoring:
                    "footprint_fraction": float(inside.float().mean())}
         metrics.update(region_scores(after, source, truth, inside))
         return metrics, inside
+
+    @torch.no_grad()
+    def recolour_rows(self, model, selection: torch.Tensor, taken: torch.Tensor, views: Sequence[int]) -> dict:
+        """How much of a recolour reached the true region's Gaussians, and which stage lost the
+        rest. Each true-region row's colour error (base colour against the true edit's, squared)
+        is weighted by how much the `views` see it (its rendering weight there, in pixels), as the
+        footprint PSNR weighs it. `recolour_done`: the share of doing nothing's error the result
+        removed; the error left is split into the rows localization did not select
+        (`recolour_left_unselected`), those it selected and the recolour gate declined
+        (`..._declined`: not in `taken`) and those that trained (`..._taken`); shares of 1, None
+        when no error is left. {} unless both the true edit and the result keep exactly the
+        source's rows (a recolour that added, split or pruned nothing)."""
+        gt, d = self.gt, self.device()
+        n = len(gt.source)
+        if len(gt.edited) != n or model.num_gaussians != n or not bool(
+                (model.source_index.to(d) == torch.arange(n, device=d)).all()):
+            return {}
+        source, true = gt.source.to(d), gt.edited.to(d)
+        seen = torch.zeros(n, device=d)
+        for i in views:
+            cam = self.camera(i)
+            seen += self.renderer.pixel_weights(source, cam).gather(torch.ones(cam.height, cam.width, device=d))
+        colour = lambda m: sh_to_rgb(m.sh_dc.detach())  # noqa: E731
+        region = gt.region.to(d)
+        left = seen * (colour(model) - colour(true)).pow(2).sum(-1) * region
+        before = float((seen * (colour(source) - colour(true)).pow(2).sum(-1) * region).sum())
+        total = float(left.sum())
+        selected, taken = selection.to(d).bool(), taken.to(d).bool()
+        groups = {"unselected": ~selected, "declined": selected & ~taken, "taken": selected & taken}
+        out = {"recolour_done": 1.0 - total / before if before > 0 else None}
+        out.update({f"recolour_left_{name}": float(left[rows_].sum()) / total if total > 0 else None
+                    for name, rows_ in groups.items()})
+        return out
 
     def gaussians_added(self) -> int:
         return len(self.gt.edited) - len(self.gt.source)

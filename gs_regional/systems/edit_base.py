@@ -414,6 +414,11 @@ class EditSystemBase(GaussianSystem):
         return {}
 
     @torch.no_grad()
+    def evaluation_views(self) -> List[int]:
+        """The views the result is scored and shown at: the test views (the training views when
+        there are none), at most `eval.max_test_views`."""
+        return (self.scene.test_indices or self.scene.train_indices)[: self.cfg.eval.max_test_views]
+
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
         """edited.ply, before/after renders, a turntable video and metrics.json (rank 0 alone, with
         several processes: the others return {} at once)."""
@@ -429,7 +434,7 @@ class EditSystemBase(GaussianSystem):
                             **self.edit_mask_arrays())
         export_bytes = self.write_formats("edited")
         scene = self.scene
-        views = (scene.test_indices or scene.train_indices)[: self.cfg.eval.max_test_views]
+        views = self.evaluation_views()
         after = {i: self.render_view(i)["rgb"].clamp(0, 1) for i in views}
         rows = [[self.source_renders[i], after[i]] for i in views]
         if self.truth is not None:

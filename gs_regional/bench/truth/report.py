@@ -159,14 +159,17 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
     parts = [r for r in records if r["kind"] in PART_KINDS]
     drawn = [r for r in records if r["kind"] not in PART_KINDS]
     if parts and not only:
-        print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
-              "| outside dB | IoU |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print("\nwhole parts (a recolour's error left: on the rows not selected / declined by the gate / trained):\n"
+              "| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
+              "| outside dB | IoU | recolour left |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for r in parts:
+            left = " / ".join(sweeps.fmt(r.get(f"recolour_left_{k}")) for k in ("unselected", "declined", "taken"))
             print(f"| {r['id']} | {r['kind']} | {r['scene']} | {r.get('part_key', r.get('part'))} | {r.get('part_gaussians')} | "
                   f"{sweeps.fmt(r.get('side_view_fraction'))} | {sweeps.fmt(r.get('hidden_fraction'))} | "
                   f"{sweeps.fmt(r.get('view_fraction'))} | {sweeps.fmt(r.get('gain'))} | "
-                  f"{sweeps.fmt(r.get('psnr_outside_vs_true_edit'))} | {sweeps.fmt(r.get('mask_iou'))} |")
+                  f"{sweeps.fmt(r.get('psnr_outside_vs_true_edit'))} | {sweeps.fmt(r.get('mask_iou'))} | "
+                  f"{left if r['kind'] == 'recolor_part' else ''} |")
     print("\n| metric | n | min | median | max |")
     print("| --- | --- | --- | --- | --- |")
     _distribution_rows(drawn, DISTRIBUTION)
