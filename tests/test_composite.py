@@ -2,6 +2,8 @@
 scene's known recolour and addition, the composite of a simulated edit keeps the edit and leaves the
 pixels around it as the source renders them, where the former dilated (6 px), feathered composite
 let the editor's bleed and the blur of regenerating the image through."""
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -673,6 +675,11 @@ def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypat
     assert frontal % 6 >= 3 and near == strategies.nearest_cameras(cams, frontal, 3, range(12)), (frontal, near)
     covered = sum(weights[v] for v in [frontal, *near])
     assert float((covered[unseen] >= SEEN_MIN_WEIGHT).float().mean()) > 0.5
+    # The cycle is remembered as one that edits the part for the first time (its colours then land
+    # on its targets: colour_step), also across a resume.
+    resumed = strategies.Recolour(strategies.RefineConfig(m=3), ablation)
+    resumed.load_state_dict(strategy.state_dict())
+    assert strategy.unedited_cycles == resumed.unedited_cycles == [1]
     assert strategy.cycle_views(system, 0, 2, [1, 3, 0]) == (2, [1, 3, 0])  # the first cycle: its own
     everything = sum(weights.values())
     strategy.blend_votes = torch.stack([everything, everything])
@@ -680,3 +687,32 @@ def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypat
     strategy.blend_votes = torch.stack([seen, seen])
     monkeypatch.setattr(strategies, "UNEDITED_MIN_AREA", 0.5)
     assert strategy.cycle_views(system, 1, 2, [1, 3, 0]) == (2, [1, 3, 0])
+
+
+def test_a_colour_step_lands_the_colours_on_the_targets_and_never_past_them():
+    """`colour_step` on a known answer: the figure's head recoloured red (the synthetic truth),
+    seen in 4 views; one step of the head's base colours towards the true edited renders brings
+    the head's interior (pixels the head covers whole) to within 1 % of the truth's error (from
+    doing nothing); at the head's rim, which it shares with the Gaussians around it, the error
+    shrinks too and no pixel moves past its target by more than its own remaining gap."""
+    from gs_regional.stages.strategies import colour_step
+
+    gt = make_edit("recolor", n_object=3000, n_background=1000)
+    cams, _ = make_cameras(8, 48, 48)
+    renderer = find("torch-rasterizer")()
+    views = [0, 2, 5, 7]
+    model = copy.deepcopy(gt.source)
+    with torch.no_grad():
+        targets = torch.stack([renderer.render(gt.edited, cams[v])["rgb"] for v in views])
+        before = torch.stack([renderer.render(model, cams[v])["rgb"] for v in views])
+        weights = [renderer.pixel_weights(model, cams[v]) for v in views]
+        colour_step(model, gt.region, weights, targets, list(before))
+        after = torch.stack([renderer.render(model, cams[v])["rgb"] for v in views])
+        cover = torch.stack([render_selection(gt.source, renderer, cams[v], gt.region) for v in views])
+    interior, rim = cover > 0.99, (cover > 0.05) & (cover <= 0.99)
+    err = lambda x, m: float((x - targets).pow(2).sum(-1)[m].mean())  # noqa: E731
+    assert int(interior.sum()) > 100 and err(after, interior) < 0.01 * err(before, interior)
+    assert err(after, rim) < 0.5 * err(before, rim)
+    gap = (targets - before).abs()
+    assert bool(((after - targets).abs() <= gap + 1e-3)[rim].all())  # never past the target
+    assert float((after - before).abs().amax(-1)[cover < 1e-4].max()) < 1e-3  # what the head does not reach

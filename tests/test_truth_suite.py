@@ -387,3 +387,7 @@ def test_a_quick_whole_part_case_runs_and_is_reported_apart(tmp_path, capsys):
         assert 0 <= r[key] <= 1, key
     assert "whole parts:" in out and "| **whole parts** |" in out and f"| {case['id']} | recolor_part |" in out
     assert "gain >= +8 dB, every whole-part recolour" in out
+    # where its shortfall lies: shares of the error left, by the stage that lost it
+    if not r.get("stopped") and r["recolour_done"] is not None and r["recolour_done"] < 1:
+        shares = [r[f"recolour_left_{k}"] for k in ("unselected", "declined", "taken")]
+        assert abs(sum(shares) - 1) < 1e-6 and "recolour's error left" in out

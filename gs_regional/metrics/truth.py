@@ -12,7 +12,7 @@ from gs_regional.geometry import rows
 from gs_regional.metrics.image import psnr, ssim
 from gs_regional.metrics.region import SEEN_MIN_WEIGHT, footprint, mask_metrics, region_scores, render_selection
 from gs_regional.utils.image import dilate
-from gs_regional.utils.sh import sh_to_rgb
+from gs_regional.utils.sh import sh_to_color
 
 
 
@@ -105,15 +105,18 @@ class TruthScoring:
                 (model.source_index.to(d) == torch.arange(n, device=d)).all()):
             return {}
         source, true = gt.source.to(d), gt.edited.to(d)
-        seen = torch.zeros(n, device=d)
+        region = gt.region.to(d)
+        left, before = torch.zeros(n, device=d), torch.zeros(n, device=d)
+
+        def colour(m, cam):  # each Gaussian's colour as the view sees it (its SH at the view's direction)
+            return sh_to_color(m.sh_degree, m.sh.detach(), m.means.detach(), cam.center)
+
         for i in views:
             cam = self.camera(i)
-            seen += self.renderer.pixel_weights(source, cam).gather(torch.ones(cam.height, cam.width, device=d))
-        colour = lambda m: sh_to_rgb(m.sh_dc.detach())  # noqa: E731
-        region = gt.region.to(d)
-        left = seen * (colour(model) - colour(true)).pow(2).sum(-1) * region
-        before = float((seen * (colour(source) - colour(true)).pow(2).sum(-1) * region).sum())
-        total = float(left.sum())
+            seen = self.renderer.pixel_weights(source, cam).gather(torch.ones(cam.height, cam.width, device=d))
+            left += seen * (colour(model, cam) - colour(true, cam)).pow(2).sum(-1) * region
+            before += seen * (colour(source, cam) - colour(true, cam)).pow(2).sum(-1) * region
+        total, before = float(left.sum()), float(before.sum())
         selected, taken = selection.to(d).bool(), taken.to(d).bool()
         groups = {"unselected": ~selected, "declined": selected & ~taken, "taken": selected & taken}
         out = {"recolour_done": 1.0 - total / before if before > 0 else None}

@@ -413,12 +413,12 @@ class EditSystemBase(GaussianSystem):
         """More arrays for save/edit_mask.npz (a system's own; none here)."""
         return {}
 
-    @torch.no_grad()
     def evaluation_views(self) -> List[int]:
         """The views the result is scored and shown at: the test views (the training views when
         there are none), at most `eval.max_test_views`."""
         return (self.scene.test_indices or self.scene.train_indices)[: self.cfg.eval.max_test_views]
 
+    @torch.no_grad()
     def write_outputs(self, extra_metrics: Optional[dict] = None) -> dict:
         """edited.ply, before/after renders, a turntable video and metrics.json (rank 0 alone, with
         several processes: the others return {} at once)."""

@@ -159,9 +159,8 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
     parts = [r for r in records if r["kind"] in PART_KINDS]
     drawn = [r for r in records if r["kind"] not in PART_KINDS]
     if parts and not only:
-        print("\nwhole parts (a recolour's error left: on the rows not selected / declined by the gate / trained):\n"
-              "| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
-              "| outside dB | IoU | recolour left |")
+        print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
+              "| outside dB | IoU | recolour's error left: unselected / declined / trained |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for r in parts:
             left = " / ".join(sweeps.fmt(r.get(f"recolour_left_{k}")) for k in ("unselected", "declined", "taken"))
