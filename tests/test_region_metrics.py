@@ -157,3 +157,29 @@ def test_a_recolours_shortfall_is_laid_at_the_stage_that_lost_it():
     added = make_edit("add", n_object=1500, n_background=500)  # a true edit that adds rows
     adding = TruthScoring(added, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
     assert adding.recolour_rows(copy.deepcopy(added.source), everything, everything, views) == {}
+
+
+def test_an_additions_cover_says_how_much_of_the_new_object_is_drawn_and_where_it_is_not():
+    """`addition_cover` on known answers: the true edited scene itself covers its new object whole
+    and nothing beside it; the source (nothing added) covers none of it; the object moved aside by
+    its own width covers part of it and puts the rest where the truth has nothing; a recolour's
+    truth (no new rows) is not judged."""
+    gt = make_edit("add", n_object=1500, n_background=500)
+    cams, _ = make_cameras(n=6, width=48, height=48)
+    scoring = TruthScoring(gt, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
+    views = list(range(len(cams)))
+    n = len(gt.source)
+    new = torch.arange(len(gt.edited)) >= n
+    whole = scoring.addition_cover(gt.edited, new, views)
+    assert whole["added_cover"] == pytest.approx(1.0, abs=1e-6) and whole["added_cover_outside"] == pytest.approx(0.0, abs=1e-6)
+    none = scoring.addition_cover(gt.source, torch.zeros(n, dtype=torch.bool), views)
+    assert none == {"added_cover": 0.0, "added_cover_outside": 0.0}
+    moved = copy.deepcopy(gt.edited)
+    obj = moved.means.detach()[new]
+    with torch.no_grad():
+        moved.means[new] += torch.tensor([1.0, 0.0, 0.0]) * float(obj[:, 0].max() - obj[:, 0].min())
+    aside = scoring.addition_cover(moved, new, views)
+    assert aside["added_cover"] < 0.6 and aside["added_cover_outside"] > 0.4
+    recolour = make_edit("recolor", n_object=1500, n_background=500)
+    assert TruthScoring(recolour, find("torch-rasterizer")(), cams, lambda: torch.device("cpu")).addition_cover(
+        recolour.edited, torch.zeros(len(recolour.edited), dtype=torch.bool), views) == {}

@@ -124,5 +124,28 @@ class TruthScoring:
                     for name, rows_ in groups.items()})
         return out
 
+    @torch.no_grad()
+    def addition_cover(self, model, added: torch.Tensor, views: Sequence[int]) -> dict:
+        """How much of the true edit's new object the Gaussians an addition placed draw, over the
+        `views`: `added_cover` the share of the true object's coverage (its rendered weight in the
+        true edited scene, summed over pixels) that the result's `added` rows cover there too (1: as
+        opaque wherever the truth is; an object drawn thin or in part stays under it), and
+        `added_cover_outside` their coverage where the true object is not, in the same unit (a
+        misplaced or spilled object). {} when the true edit adds nothing."""
+        gt, d = self.gt, self.device()
+        n = len(gt.source)
+        new = gt.new_region.to(d) & (torch.arange(len(gt.edited), device=d) >= n)
+        if not bool(new.any()):
+            return {}
+        inside = outside = total = 0.0
+        for i in views:
+            cam = self.camera(i)
+            truth = render_selection(gt.edited.to(d), self.renderer, cam, new)
+            drawn = render_selection(model, self.renderer, cam, added.to(d))
+            inside += float(torch.minimum(drawn, truth).sum())
+            outside += float((drawn - truth).clamp_min(0).sum())
+            total += float(truth.sum())
+        return {"added_cover": inside / total, "added_cover_outside": outside / total} if total > 0 else {}
+
     def gaussians_added(self) -> int:
         return len(self.gt.edited) - len(self.gt.source)

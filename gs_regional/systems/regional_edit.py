@@ -519,6 +519,8 @@ class RegionalEdit(EditSystemBase):
             # which stage lost what the recolour did not reach: localization, the gate or training
             extra.update(self.truth.recolour_rows(self.geometry, s.source_selection, self.geometry.mask,
                                                   self.evaluation_views()))
+        if self.truth is not None:  # how much of a new object the added Gaussians draw, and where it is not
+            extra.update(self.truth.addition_cover(self.geometry, self.geometry.generation > 0, self.evaluation_views()))
         self.write_outputs(extra)
 
     def evaluation_region(self, index: int):
