@@ -11,7 +11,8 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 * `target(system, view, edited)`: the view's training target (the composite);
 * `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
 * `densify`: the densification strategy of refinement (None: no Gaussian added);
-* `after_edits(system)`: what follows each cycle's edits (the recolour's gate);
+* `after_edits(system)`: what follows each cycle's edits (the recolour's gate, and its colour step on a
+  side edited for the first time; the addition's fill from the cycle's depth);
 * `finish(system)`: the last word after refinement;
 * `state_dict()` / `load_state_dict()` / `to(device)`: what it keeps in a checkpoint.
 """
