@@ -114,16 +114,20 @@ def test_mask_metrics_known_and_empty():
         mask_metrics(some, torch.zeros(4, dtype=torch.bool))
 
 
+def _scoring(edit: str):
+    """(truth, its TruthScoring, views) of a small synthetic known edit seen by 6 cameras at 48²."""
+    gt = make_edit(edit, n_object=1500, n_background=500)
+    cams, _ = make_cameras(n=6, width=48, height=48)
+    return gt, TruthScoring(gt, find("torch-rasterizer")(), cams, lambda: torch.device("cpu")), list(range(len(cams)))
+
+
 def test_a_recolours_shortfall_is_laid_at_the_stage_that_lost_it():
     """`recolour_rows` on known answers: a result halfway to the true colours on every region
     Gaussian has removed 3/4 of doing nothing's error, all of what is left on the rows that
     trained; a result that is right except where the gate declined leaves all of its error there;
     one that localized nothing leaves it on the unselected rows; a result with rows added is not
     judged."""
-    gt = make_edit("recolor", n_object=1500, n_background=500)
-    cams, _ = make_cameras(n=6, width=48, height=48)
-    scoring = TruthScoring(gt, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
-    views = list(range(len(cams)))
+    gt, scoring, views = _scoring("recolor")
     region = gt.region
     source, true = gt.source.sh_dc.detach(), gt.edited.sh_dc.detach()
     assert int(region.sum()) > 30 and bool(((true - source).abs().sum(-1) > 0)[region].all())
@@ -154,8 +158,7 @@ def test_a_recolours_shortfall_is_laid_at_the_stage_that_lost_it():
 
     pruned = copy.deepcopy(gt.source).select(torch.arange(1, len(region)))  # a result without the first row
     assert scoring.recolour_rows(pruned, everything[1:], everything[1:], views) == {}
-    added = make_edit("add", n_object=1500, n_background=500)  # a true edit that adds rows
-    adding = TruthScoring(added, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
+    added, adding, _ = _scoring("add")  # a true edit that adds rows
     assert adding.recolour_rows(copy.deepcopy(added.source), everything, everything, views) == {}
 
 
@@ -164,10 +167,7 @@ def test_an_additions_cover_says_how_much_of_the_new_object_is_drawn_and_where_i
     and nothing beside it; the source (nothing added) covers none of it; the object moved aside by
     its own width covers part of it and puts the rest where the truth has nothing; a recolour's
     truth (no new rows) is not judged."""
-    gt = make_edit("add", n_object=1500, n_background=500)
-    cams, _ = make_cameras(n=6, width=48, height=48)
-    scoring = TruthScoring(gt, find("torch-rasterizer")(), cams, lambda: torch.device("cpu"))
-    views = list(range(len(cams)))
+    gt, scoring, views = _scoring("add")
     n = len(gt.source)
     new = torch.arange(len(gt.edited)) >= n
     whole = scoring.addition_cover(gt.edited, new, views)
@@ -180,6 +180,5 @@ def test_an_additions_cover_says_how_much_of_the_new_object_is_drawn_and_where_i
         moved.means[new] += torch.tensor([1.0, 0.0, 0.0]) * float(obj[:, 0].max() - obj[:, 0].min())
     aside = scoring.addition_cover(moved, new, views)
     assert aside["added_cover"] < 0.6 and aside["added_cover_outside"] > 0.4
-    recolour = make_edit("recolor", n_object=1500, n_background=500)
-    assert TruthScoring(recolour, find("torch-rasterizer")(), cams, lambda: torch.device("cpu")).addition_cover(
-        recolour.edited, torch.zeros(len(recolour.edited), dtype=torch.bool), views) == {}
+    recolour, recolouring, _ = _scoring("recolor")
+    assert recolouring.addition_cover(recolour.edited, torch.zeros(len(recolour.edited), dtype=torch.bool), views) == {}

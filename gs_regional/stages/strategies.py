@@ -297,9 +297,9 @@ class Recolour(EditStrategy):
                 best, most = v, area
         if best is None:
             return frontal, near
-        system.counts["unedited_cycles"] = system.counts.get("unedited_cycles", 0) + 1
         if cycle not in self.unedited_cycles:
             self.unedited_cycles.append(cycle)
+        system.counts["unedited_cycles"] = len(self.unedited_cycles)
         log.info("refine %d: the selected Gaussians no edited view has seen cover %.0f%% of view %d; the cycle "
                  "starts there", cycle + 1, 100 * most, best)
         return best, nearest_cameras(scene.cameras, best, self.cfg.m, scene.train_indices)

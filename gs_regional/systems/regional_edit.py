@@ -24,7 +24,7 @@ from gs_regional.stages.localize import (
 )
 from gs_regional.stages.prune import prune_useless_added
 from gs_regional.stages.state import EditState
-from gs_regional.stages.strategies import EditStrategy, Recolour, RefineConfig, choose_strategy, is_recolour_edge
+from gs_regional.stages.strategies import EditStrategy, RefineConfig, choose_strategy, is_recolour_edge
 from gs_regional.stages.views import cycle_views, spread_subset
 from gs_regional.geometry import rows
 from gs_regional.geometry.strategy import DensifyStrategy
@@ -515,12 +515,13 @@ class RegionalEdit(EditSystemBase):
             extra["t_starts"] = [self.strategy.start_timestep(c) for c in range(self.cfg.refine.cycles)]
         if s.init_report:
             extra["init"] = s.init_report
-        if self.truth is not None and isinstance(self.strategy, Recolour) and s.source_selection is not None:
-            # which stage lost what the recolour did not reach: localization, the gate or training
-            extra.update(self.truth.recolour_rows(self.geometry, s.source_selection, self.geometry.mask,
-                                                  self.evaluation_views()))
-        if self.truth is not None:  # how much of a new object the added Gaussians draw, and where it is not
-            extra.update(self.truth.addition_cover(self.geometry, self.geometry.generation > 0, self.evaluation_views()))
+        if self.truth is not None:
+            # a recolour: which stage lost what it did not reach (localization, the gate, training);
+            # an addition: how much of the new object its Gaussians draw. Each is {} for the other.
+            g, views = self.geometry, self.evaluation_views()
+            if s.source_selection is not None:
+                extra.update(self.truth.recolour_rows(g, s.source_selection, g.mask, views))
+            extra.update(self.truth.addition_cover(g, g.generation > 0, views))
         self.write_outputs(extra)
 
     def evaluation_region(self, index: int):
