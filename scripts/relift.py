@@ -1,7 +1,8 @@
 #!/usr/bin/env python
-"""Saved localizations lifted again, the edge colour test at other ratios (gs_regional/bench/relift.py).
+"""Saved localizations lifted again, the edge colour test at other ratios and each case at its best
+mask_threshold (gs_regional/bench/relift.py).
 
-    python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5]
+    python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5] [--thresholds 0.3 0.4 0.5 0.6 0.7 0.8 0.9]
 """
 import os
 import sys

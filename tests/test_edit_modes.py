@@ -20,6 +20,14 @@ def test_stop_after_localize_writes_the_localization_figures_and_the_source_unch
     assert again[EDGE_COLOUR_RATIO]["masks"]["mask_iou"] == pytest.approx(m["mask_iou"], abs=1e-9)
     assert again[EDGE_COLOUR_RATIO]["exact"]["mask_iou"] == pytest.approx(m["mask_iou_exact_masks"], abs=1e-9)
     assert again[0.0]["masks"]["mask_recall"] >= again[EDGE_COLOUR_RATIO]["masks"]["mask_recall"]
+    # each case at its best threshold: the run's own threshold among them gives at least the run's IoU
+    import numpy as np
+
+    own = float(np.load(trial / "save" / "localization.npz")["threshold"])
+    best = relift(str(trial), [EDGE_COLOUR_RATIO], thresholds=[own, 0.95])[EDGE_COLOUR_RATIO]
+    assert best["best_masks"][0] >= m["mask_iou"] - 1e-9 and best["best_masks"][1] in (own, 0.95)
+    assert relift(str(trial), [EDGE_COLOUR_RATIO], thresholds=[own])[EDGE_COLOUR_RATIO]["best_exact"] == (
+        pytest.approx(m["mask_iou_exact_masks"], abs=1e-9), own)
 
 
 def test_a_checkpoint_written_with_a_retired_setting_stops_the_resume_with_one_line():
