@@ -32,7 +32,7 @@ def relift(trial: str, ratios, thresholds=()) -> dict:
 
     from gs_regional.bench.launching import trial_truth
     from gs_regional.config import parse_structured
-    from gs_regional.metrics.region import mask_metrics
+    from gs_regional.metrics.region import mask_metrics, splat_selection
     from gs_regional.renderers.select import make_renderer
     from gs_regional.stages.localize import LOCALIZATION_FILE, LocalizeConfig, localize_gaussians
 
@@ -52,17 +52,18 @@ def relift(trial: str, ratios, thresholds=()) -> dict:
         out = {}
         for ratio in ratios:
             lift = dict(lc.lift(), edge_ratio=ratio, images=images)
-            lifted = localize_gaussians(model, renderer, cameras, masks, reuse=first, **lift)
-            first = lifted if first is None else first  # its pixel weights and neighbourhoods, reused
-            exact = [v.splat(gt.region.float()[:, None])[..., 0].clamp(0, 1) > 0.5 for v in lifted["views"]]
-            out[ratio] = {"masks": mask_metrics(lifted["selected"], gt.region),
-                          "exact": mask_metrics(localize_gaussians(model, renderer, cameras, exact, reuse=first, **lift)[
-                              "selected"], gt.region)}
+            first = first or localize_gaussians(model, renderer, cameras, masks, **lift)  # pixel weights, neighbours
+
+            def scored(these, **changed) -> dict:
+                return mask_metrics(localize_gaussians(model, renderer, cameras, these, reuse=first, **{**lift, **changed})[
+                    "selected"], gt.region)
+
+            exact = [splat_selection(v, gt.region) > 0.5 for v in first["views"]]
+            out[ratio] = {}
             for name, these in (("masks", masks), ("exact", exact)):
-                tried = [(mask_metrics(localize_gaussians(model, renderer, cameras, these, reuse=first, **dict(
-                    lift, threshold=t))["selected"], gt.region)["mask_iou"] or 0.0, t) for t in thresholds]
-                if tried:
-                    out[ratio][f"best_{name}"] = max(tried)
+                out[ratio][name] = scored(these)
+                if thresholds:
+                    out[ratio][f"best_{name}"] = max((scored(these, threshold=t)["mask_iou"] or 0.0, t) for t in thresholds)
     return out
 
 

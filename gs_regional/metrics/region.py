@@ -30,6 +30,13 @@ def render_selection(model, renderer, camera, selected: torch.Tensor) -> torch.T
     feat = selected.float()[:, None].to(model.means.device)
     return renderer.render(model, camera, override_color=feat)["rgb"][..., 0].clamp(0, 1)
 
+
+@torch.no_grad()
+def splat_selection(view, selected: torch.Tensor) -> torch.Tensor:
+    """`render_selection` from a view's kept pixel weights (a `PixelWeights`; no new render)."""
+    return view.splat(selected.float()[:, None])[..., 0].clamp(0, 1)
+
+
 def footprint(weights: torch.Tensor, threshold: float = 0.1) -> torch.Tensor:
     """(..., H, W) bool: pixels whose rendered weight of the true edited region exceeds `threshold`."""
     return weights > threshold

@@ -10,7 +10,9 @@ import torch
 
 from gs_regional.geometry import rows
 from gs_regional.metrics.image import psnr, ssim
-from gs_regional.metrics.region import SEEN_MIN_WEIGHT, footprint, mask_metrics, region_scores, render_selection
+from gs_regional.metrics.region import (
+    SEEN_MIN_WEIGHT, footprint, mask_metrics, region_scores, render_selection, splat_selection,
+)
 from gs_regional.utils.image import dilate
 from gs_regional.utils.sh import sh_to_color
 
@@ -70,7 +72,7 @@ class TruthScoring:
         seen = seen.cpu() >= SEEN_MIN_WEIGHT
         out["mask_iou_seen"] = mask_metrics(selection.cpu()[seen], truth[seen])["mask_iou"]
         out["region_unseen"] = int((truth & ~seen).sum())
-        exact = [v.splat(truth.to(self.device()).float()[:, None])[..., 0].clamp(0, 1) > 0.5 for v in views]
+        exact = [splat_selection(v, truth.to(self.device())) > 0.5 for v in views]
         from_exact = mask_metrics(rows.source_rows(model, relift(exact), n_source).cpu(), truth)
         out.update({f"{key}_exact_masks": value for key, value in from_exact.items()})
         return out

@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from gs_regional.config import need
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
-from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection  # noqa: F401 (part of this stage's API)
+from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection, splat_selection  # noqa: F401 (part of this stage's API)
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.sh import sh_to_color
@@ -254,12 +254,6 @@ def expand_selection(means: torch.Tensor, selected: torch.Tensor, radius: float)
     out = selected.clone()
     out[~selected] = neighbors.within_radius(means[~selected], means[selected], radius)
     return out
-
-
-@torch.no_grad()
-def splat_selection(view: PixelWeights, selected: torch.Tensor) -> torch.Tensor:
-    """`render_selection` from a view's kept weights (no new render)."""
-    return view.splat(selected.float()[:, None])[..., 0].clamp(0, 1)
 
 
 @dataclass
