@@ -66,8 +66,13 @@ STILL_DISTINCT = 0.5
 # edited view has seen yet cover the most, when they cover at least this fraction of its pixels:
 # a part seen from every side (a donut's dough) was otherwise edited from one side only. Below it
 # (a thin part's hidden side, seen edge-on) the edit's jitter there spills onto the neighbours more
-# than it adds.
+# than it adds. When the unseen Gaussians are at least UNEDITED_MIN_SHARE of the selection (a
+# body seen from the front, its back and sides left at their source colours: half of the part's
+# error), a view they cover UNEDITED_MIN_SHARE_AREA of is enough: the side they make up matters
+# more than another cycle on the sides already edited.
 UNEDITED_MIN_AREA = 0.04
+UNEDITED_MIN_SHARE = 0.3
+UNEDITED_MIN_SHARE_AREA = 0.01
 UNEDITED_CANDIDATES = 32  # training views looked at (spread over them)
 
 # An edit whose depth shows a change of shape of fewer Gaussians than this while its first full edit
@@ -281,19 +286,23 @@ class Recolour(EditStrategy):
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
         """A later cycle goes where the part is still unedited: its frontal view is the training
         view in which the selected Gaussians no edited view has seen (the gate's votes count what
-        the edited views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels, and its
+        the edited views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels
+        (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of the selection), and its
         neighbours are the nearest cameras. Otherwise the schedule's views."""
         if cycle == 0 or self.blend_votes is None or not self.regional:
             return frontal, near
         g, scene = system.geometry, system.scene
-        unseen = rows.of_source(g, system.state.source_selection) & (self.blend_votes[1] < SEEN_MIN_WEIGHT)
+        selected = rows.of_source(g, system.state.source_selection)
+        unseen = selected & (self.blend_votes[1] < SEEN_MIN_WEIGHT)
         if not bool(unseen.any()):
             return frontal, near
+        share = int(unseen.sum()) / int(selected.sum())
+        min_area = UNEDITED_MIN_SHARE_AREA if share >= UNEDITED_MIN_SHARE else UNEDITED_MIN_AREA
         best, most = None, 0.0
         for v in spread_subset(scene.train_indices, UNEDITED_CANDIDATES):
             cam = scene.cameras[v].to(system.device)
             area = float(render_selection(g, system.renderer, cam, unseen).sum()) / (cam.width * cam.height)
-            if area >= UNEDITED_MIN_AREA and area > most:
+            if area >= min_area and area > most:
                 best, most = v, area
         if best is None:
             return frontal, near
@@ -302,7 +311,10 @@ class Recolour(EditStrategy):
         system.counts["unedited_cycles"] = len(self.unedited_cycles)
         log.info("refine %d: the selected Gaussians no edited view has seen cover %.0f%% of view %d; the cycle "
                  "starts there", cycle + 1, 100 * most, best)
-        return best, nearest_cameras(scene.cameras, best, self.cfg.m, scene.train_indices)
+        # Half of the cycle's views go there; the rest are the schedule's, which would otherwise
+        # lose a cycle of refinement on the sides already edited.
+        there = nearest_cameras(scene.cameras, best, self.cfg.m // 2, scene.train_indices)
+        return best, there + [v for v in [frontal, *near] if v != best and v not in there][: self.cfg.m - len(there)]
 
     def set_trainable(self, geometry, param_groups: List[dict]) -> None:
         if self.ablation.optimize_all:
