@@ -287,8 +287,9 @@ class Recolour(EditStrategy):
         """A later cycle goes where the part is still unedited: its frontal view is the training
         view in which the selected Gaussians no edited view has seen (the gate's votes count what
         the edited views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels
-        (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of the selection), and its
-        neighbours are the nearest cameras. Otherwise the schedule's views."""
+        (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of the selection); half of its
+        neighbours are the nearest cameras to it, the rest the schedule's. Otherwise the schedule's
+        views."""
         if cycle == 0 or self.blend_votes is None or not self.regional:
             return frontal, near
         g, scene = system.geometry, system.scene
