@@ -643,6 +643,29 @@ def test_the_recolour_gate_takes_a_part_recoloured_strongly_in_some_views_and_fa
     assert not takes[ring & ~dilate(part, 1)].any()
 
 
+def _figure_for_later_cycles():
+    """The figure on its 12 cameras at 32x32 (an arc of +-100 degrees at two heights, views 0-5 the
+    low ring), each view's rendering weight per Gaussian, and a recolour's system and strategy
+    (m = 3) for a selection of its parts: what `Recolour.cycle_views` reads."""
+    from types import SimpleNamespace
+
+    from gs_regional.stages import strategies
+
+    model, _, _ = make_scene(0)
+    cams, _ = make_cameras(12, 32, 32)
+    renderer = find("torch-rasterizer")()
+    weights = {v: renderer.pixel_weights(model, cams[v]).gather(torch.ones(32, 32)) for v in range(12)}
+
+    def recolour(selection):
+        system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
+                                 scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))),
+                                 state=SimpleNamespace(source_selection=selection))
+        ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
+        return system, strategies.Recolour(strategies.RefineConfig(m=3), ablation)
+
+    return model, cams, renderer, weights, recolour
+
+
 def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypatch):
     """Known answer on the figure's 12 cameras (an arc of +-100 degrees at two heights): the body,
     seen from the whole arc, was edited so far in the 3 views at one end of the low ring. The next
@@ -650,22 +673,13 @@ def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypat
     cover the most, and the views it edits see most of them. Once the edited views have seen the
     whole selection, or when what they have not seen covers under UNEDITED_MIN_AREA of every view
     (a thin part's hidden side), the schedule's own views come back."""
-    from types import SimpleNamespace
-
     from gs_regional.sim.scene import part_masks
     from gs_regional.stages import strategies
     from gs_regional.stages.localize import SEEN_MIN_WEIGHT
 
-    model, _, _ = make_scene(0)
-    cams, _ = make_cameras(12, 32, 32)
-    renderer = find("torch-rasterizer")()
+    _, cams, _, weights, recolour = _figure_for_later_cycles()
     body = part_masks(0)["body"]
-    weights = {v: renderer.pixel_weights(model, cams[v]).gather(torch.ones(32, 32)) for v in range(12)}
-    system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
-                             scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))),
-                             state=SimpleNamespace(source_selection=body))
-    ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
-    strategy = strategies.Recolour(strategies.RefineConfig(m=3), ablation)
+    system, strategy = recolour(body)
     edited = [0, 1, 2]  # the low ring's first three cameras, azimuth -100 to about -45 degrees
     seen = sum(weights[v] for v in edited)
     strategy.blend_votes = torch.stack([seen, seen])
@@ -679,7 +693,7 @@ def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypat
     assert float((covered[unseen] >= SEEN_MIN_WEIGHT).float().mean()) > 0.5
     # The cycle is remembered as one that edits the part for the first time (its colours then land
     # on its targets: colour_step), also across a resume.
-    resumed = strategies.Recolour(strategies.RefineConfig(m=3), ablation)
+    resumed = recolour(body)[1]
     resumed.load_state_dict(strategy.state_dict())
     assert strategy.unedited_cycles == resumed.unedited_cycles == [1]
     assert strategy.cycle_views(system, 0, 2, [1, 3, 0]) == (2, [1, 3, 0])  # the first cycle: its own
@@ -698,23 +712,15 @@ def test_a_recolours_later_cycle_goes_to_a_large_unseen_share_of_the_part_even_w
     cover at most about 3 % of any view, under UNEDITED_MIN_AREA, but being UNEDITED_MIN_SHARE of
     the selection the next cycle goes there. The head edited from views 2 and 5 leaves a fifth of
     it unseen, covering about 1.4 % of a view at most: the schedule's views stay."""
-    from types import SimpleNamespace
-
     from gs_regional.sim.scene import part_masks
     from gs_regional.stages import strategies
     from gs_regional.stages.localize import SEEN_MIN_WEIGHT
 
-    model, _, _ = make_scene(0)
-    cams, _ = make_cameras(12, 32, 32)
-    renderer = find("torch-rasterizer")()
-    weights = {v: renderer.pixel_weights(model, cams[v]).gather(torch.ones(32, 32)) for v in range(12)}
-    ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
+    model, cams, renderer, weights, recolour = _figure_for_later_cycles()
     schedule = (2, [1, 3, 0])
     for part, edited, goes in (("body", [1, 4], True), ("head", [2, 5], False)):
         selection = part_masks(0)[part]
-        system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
-                                 scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))),
-                                 state=SimpleNamespace(source_selection=selection))
+        system, strategy = recolour(selection)
         seen = sum(weights[v] for v in edited)
         unseen = selection & (seen < SEEN_MIN_WEIGHT)
         share = float(unseen.sum()) / float(selection.sum())
@@ -722,7 +728,6 @@ def test_a_recolours_later_cycle_goes_to_a_large_unseen_share_of_the_part_even_w
         most = max(areas)
         assert strategies.UNEDITED_MIN_SHARE_AREA < most < strategies.UNEDITED_MIN_AREA, (part, most)
         assert (share >= strategies.UNEDITED_MIN_SHARE + 0.1) if goes else (share <= strategies.UNEDITED_MIN_SHARE - 0.05), (part, share)
-        strategy = strategies.Recolour(strategies.RefineConfig(m=3), ablation)
         strategy.blend_votes = torch.stack([seen, seen])
         frontal, near = strategy.cycle_views(system, 1, *schedule)
         assert ((frontal, near) != schedule) == goes, (part, frontal)

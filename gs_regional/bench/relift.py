@@ -52,13 +52,14 @@ def relift(trial: str, ratios, thresholds=()) -> dict:
         out = {}
         for ratio in ratios:
             lift = dict(lc.lift(), edge_ratio=ratio, images=images)
-            first = first or localize_gaussians(model, renderer, cameras, masks, **lift)  # pixel weights, neighbours
+            if first is None:  # its pixel weights and neighbourhoods serve every lift below
+                first = localize_gaussians(model, renderer, cameras, masks, **lift)
+                exact = [splat_selection(v, gt.region) > 0.5 for v in first["views"]]
 
             def scored(these, **changed) -> dict:
                 return mask_metrics(localize_gaussians(model, renderer, cameras, these, reuse=first, **{**lift, **changed})[
                     "selected"], gt.region)
 
-            exact = [splat_selection(v, gt.region) > 0.5 for v in first["views"]]
             out[ratio] = {}
             for name, these in (("masks", masks), ("exact", exact)):
                 out[ratio][name] = scored(these)
