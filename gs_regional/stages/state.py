@@ -61,4 +61,5 @@ class EditState(Saved):
     edited_views: List[int] = field(default_factory=list)
     cycle_views: List[int] = field(default_factory=list)
     cycle_targets: Optional[torch.Tensor] = None  # (k, H, W, 3) edited views of a cycle
+    cycle_weights: Optional[torch.Tensor] = None  # (k, H, W) how much each target pixel counts in training (None: alike)
     targets_cycle: int = -1

@@ -11,8 +11,9 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 * `target(system, view, edited)`: the view's training target (the composite);
 * `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
 * `densify`: the densification strategy of refinement (None: no Gaussian added);
-* `after_edits(system)`: what follows each cycle's edits (the recolour's gate, and its colour step on a
-  side edited for the first time; the addition's fill from the cycle's depth);
+* `after_edits(system)`: what follows each cycle's edits (the recolour's gate, its pixel weights for
+  training and its colour step on a side edited for the first time; the addition's fill from the
+  cycle's depth);
 * `finish(system)`: the last word after refinement;
 * `state_dict()` / `load_state_dict()` / `to(device)`: what it keeps in a checkpoint.
 """
@@ -55,6 +56,13 @@ GATE_REFERENCE_QUANTILE = 0.99
 # the Gaussians recoloured by more is a part of its own (eyes in a recoloured head) and keeps its
 # source colours.
 DISTINCT_PART_BLEND = 0.85
+
+# A pixel of a recolour's targets counts in training as much as the editor recoloured it there
+# (its `edit_blend`), plus this floor: the editor places its colour a pixel or two off in each view,
+# so a part a few pixels across is recoloured in some views and shows its source colour in others;
+# counted alike, its Gaussians learn the average (a third of the way to the new colour), weighted
+# they learn the views that recolour them. The gate still decides which Gaussians train.
+RECOLOURED_PIXEL_FLOOR = 0.05
 
 # A Gaussian found a part of its own in an earlier cycle stays one while its colour lies this far
 # (RGB) from the part's median colour (`still_distinct`): an enclosed part (a head's eyes, 0.7-0.9
@@ -331,7 +339,8 @@ class Recolour(EditStrategy):
         """The gate: the selected Gaussians that the edited views so far do not recolour
         (`refine.min_edit_blend`), or that are a part of their own (DISTINCT_PART_BLEND), go back to
         their source colours and stop training; one whose views later recolour it trains again.
-        Two gathers per view of this cycle. In a cycle that went where the part was still unedited,
+        The cycle's targets train with each pixel weighted by the edit's blend there
+        (RECOLOURED_PIXEL_FLOOR). Two gathers per view of this cycle. In a cycle that went where the part was still unedited,
         the Gaussians it takes that no earlier edited view saw get their colours from its targets
         (`colour_step`: a render and a gather more per view)."""
         if not self.regional or self.cfg.min_edit_blend <= 0:
@@ -341,10 +350,13 @@ class Recolour(EditStrategy):
         if self.blend_votes is None or self.blend_votes.shape[1] != g.num_gaussians:
             self.blend_votes = torch.zeros(2, g.num_gaussians, device=system.device)
         seen_before = self.blend_votes[1].clone()  # by the views edited in earlier cycles
+        blends = []
         for k, (j, view) in enumerate(zip(s.cycle_views, weights)):
             blend = edit_blend(s.cycle_targets[k], system.source_renders[j]).clamp(0, 1)
             self.blend_votes[0] += view.gather(blend)
             self.blend_votes[1] += view.gather(torch.ones_like(blend))
+            blends.append(blend)
+        s.cycle_weights = RECOLOURED_PIXEL_FLOOR + torch.stack(blends)  # the cycle trains on what its views recolour
         num, den = self.blend_votes
         src = g.source_index
         selected = rows.of_source(g, s.source_selection)

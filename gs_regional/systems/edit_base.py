@@ -266,8 +266,11 @@ class EditSystemBase(GaussianSystem):
         self.warnings.append(message)
 
     # ----- optimisation --------------------------------------------------------------------------
-    def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        loss = self.cfg.lambda_l1 * (rgb - target).abs().mean()
+    def photometric_loss(self, rgb: torch.Tensor, target: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """L1 (and LPIPS with `lambda_lpips`) of `rgb` against `target`; `weight` (H, W): how much each
+        pixel counts in the L1 term (None: alike)."""
+        diff = (rgb - target).abs()
+        loss = self.cfg.lambda_l1 * (diff if weight is None else weight.to(diff)[..., None] * diff).mean()
         if self.cfg.lambda_lpips > 0:
             if self.lpips is None:
                 import lpips
@@ -278,12 +281,13 @@ class EditSystemBase(GaussianSystem):
         return loss
 
     def optimize_on(self, index: int, target: torch.Tensor, densify: Optional[DensifyStrategy] = None,
-                    step: int = 0) -> Dict[str, torch.Tensor]:
-        """One Adam step of the scene towards `target` at view `index`; with `densify`, its
-        statistics are gathered from this step's gradients (at the strategy's `step`)."""
+                    step: int = 0, weight: Optional[torch.Tensor] = None) -> Dict[str, torch.Tensor]:
+        """One Adam step of the scene towards `target` at view `index` (its pixels weighted by
+        `weight`, `photometric_loss`); with `densify`, its statistics are gathered from this step's
+        gradients (at the strategy's `step`)."""
         opt = self.optimizers()
         out = self.render_view(index)
-        loss = self.photometric_loss(out["rgb"], target.to(self.device))
+        loss = self.photometric_loss(out["rgb"], target.to(self.device), weight)
         opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
         if densify is not None:
@@ -293,9 +297,10 @@ class EditSystemBase(GaussianSystem):
         return out
 
     def optimize_on_views(self, indices: Sequence[int], targets: torch.Tensor,
-                          densify: Optional[DensifyStrategy] = None, step: int = 0) -> None:
-        """One Adam step of the scene towards `targets` (k, H, W, 3) at the k views `indices`: the
-        gradient of their mean loss. With several processes each renders its share of the views,
+                          densify: Optional[DensifyStrategy] = None, step: int = 0,
+                          weights: Optional[torch.Tensor] = None) -> None:
+        """One Adam step of the scene towards `targets` (k, H, W, 3) at the k views `indices` (their
+        pixels weighted by `weights` (k, H, W), None: alike): the gradient of their mean loss. With several processes each renders its share of the views,
         and the gradients and densification statistics are summed over the processes before the
         step (parallel.reduce_step), so every process takes the same step; with one process, k
         views in turn, summed the same way."""
@@ -306,7 +311,7 @@ class EditSystemBase(GaussianSystem):
         loss_sum = torch.zeros((), device=self.device)
         for k in parallel.share(len(indices), *parallel.rank_and_world(self)):
             out = self.render_view(indices[k])
-            loss = self.photometric_loss(out["rgb"], targets[k].to(self.device))
+            loss = self.photometric_loss(out["rgb"], targets[k].to(self.device), None if weights is None else weights[k])
             self.manual_backward(loss)
             if stats is not None:
                 densify.collect_stats(g, out, self.scene.cameras[indices[k]], step)

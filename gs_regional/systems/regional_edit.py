@@ -395,7 +395,7 @@ class RegionalEdit(EditSystemBase):
             return torch.stack([self.target(j, edited[j]) for j in mine])
 
         s.cycle_targets = self.map_views(len(views), targets, self.source_renders[frontal].shape)
-        s.cycle_views, s.targets_cycle = views, cycle
+        s.cycle_views, s.targets_cycle, s.cycle_weights = views, cycle, None  # the strategy's after_edits may weight them
         s.edited_views = sorted(set(s.edited_views) | set(views))
         shown = [[self.source_renders[j], s.cycle_targets[k]] for k, j in enumerate(views[:6])]
         self.save_image_grid(f"refine/cycle{cycle}_edited_views.png", shown)
@@ -455,9 +455,11 @@ class RegionalEdit(EditSystemBase):
             ks = torch.randperm(len(s.cycle_views), generator=gen)[:n_views].tolist()
         densify = self.strategy.densify
         if n_views == 1 and parallel.world_size(self) == 1:
-            self.optimize_on(s.cycle_views[ks[0]], s.cycle_targets[ks[0]], densify=densify, step=it)
+            self.optimize_on(s.cycle_views[ks[0]], s.cycle_targets[ks[0]], densify=densify, step=it,
+                             weight=None if s.cycle_weights is None else s.cycle_weights[ks[0]])
         else:  # the step's views shared out over the processes of a run on several devices
-            self.optimize_on_views([s.cycle_views[k] for k in ks], s.cycle_targets[ks], densify=densify, step=it)
+            self.optimize_on_views([s.cycle_views[k] for k in ks], s.cycle_targets[ks], densify=densify, step=it,
+                                   weights=None if s.cycle_weights is None else s.cycle_weights[ks])
         if densify is not None and densify.densifies_at(it, r.iterations_per_cycle - 1):
             parallel.agree_on_rng(self)  # split samples: rank 0's draws on every process
         rep = None if densify is None else densify.refine(
