@@ -60,8 +60,8 @@ DISTINCT_PART_BLEND = 0.85
 # A pixel of a recolour's targets counts in training as much as the editor recoloured it there
 # (its `edit_blend`), plus this floor: the editor places its colour a pixel or two off in each view,
 # so a part a few pixels across is recoloured in some views and shows its source colour in others;
-# counted alike, its Gaussians learn the average (a third of the way to the new colour), weighted
-# they learn the views that recolour them. The gate still decides which Gaussians train.
+# counted alike, its Gaussians learn the average (a third to two thirds of the way to the new
+# colour), weighted they learn the views that recolour them. The gate still decides which Gaussians train.
 RECOLOURED_PIXEL_FLOOR = 0.05
 
 # A Gaussian found a part of its own in an earlier cycle stays one while its colour lies this far
@@ -340,9 +340,9 @@ class Recolour(EditStrategy):
         (`refine.min_edit_blend`), or that are a part of their own (DISTINCT_PART_BLEND), go back to
         their source colours and stop training; one whose views later recolour it trains again.
         The cycle's targets train with each pixel weighted by the edit's blend there
-        (RECOLOURED_PIXEL_FLOOR). Two gathers per view of this cycle. In a cycle that went where the part was still unedited,
-        the Gaussians it takes that no earlier edited view saw get their colours from its targets
-        (`colour_step`: a render and a gather more per view)."""
+        (RECOLOURED_PIXEL_FLOOR). Two gathers per view of this cycle. In a cycle that went where the
+        part was still unedited, the Gaussians it takes that no earlier edited view saw get their
+        colours from its targets (`colour_step`: a render and a gather more per view)."""
         if not self.regional or self.cfg.min_edit_blend <= 0:
             return
         g, s = system.geometry, system.state

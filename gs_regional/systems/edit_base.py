@@ -300,10 +300,10 @@ class EditSystemBase(GaussianSystem):
                           densify: Optional[DensifyStrategy] = None, step: int = 0,
                           weights: Optional[torch.Tensor] = None) -> None:
         """One Adam step of the scene towards `targets` (k, H, W, 3) at the k views `indices` (their
-        pixels weighted by `weights` (k, H, W), None: alike): the gradient of their mean loss. With several processes each renders its share of the views,
-        and the gradients and densification statistics are summed over the processes before the
-        step (parallel.reduce_step), so every process takes the same step; with one process, k
-        views in turn, summed the same way."""
+        pixels weighted by `weights` (k, H, W), None: alike): the gradient of their mean loss. With
+        several processes each renders its share of the views, and the gradients and densification
+        statistics are summed over the processes before the step (parallel.reduce_step), so every
+        process takes the same step; with one process, k views in turn, summed the same way."""
         opt = self.optimizers()
         g = self.geometry
         opt.zero_grad(set_to_none=True)
