@@ -454,12 +454,13 @@ class RegionalEdit(EditSystemBase):
         else:
             ks = torch.randperm(len(s.cycle_views), generator=gen)[:n_views].tolist()
         densify = self.strategy.densify
+        weights = None if s.cycle_weights is None else s.cycle_weights[ks]
         if n_views == 1 and parallel.world_size(self) == 1:
             self.optimize_on(s.cycle_views[ks[0]], s.cycle_targets[ks[0]], densify=densify, step=it,
-                             weight=None if s.cycle_weights is None else s.cycle_weights[ks[0]])
+                             weight=None if weights is None else weights[0])
         else:  # the step's views shared out over the processes of a run on several devices
             self.optimize_on_views([s.cycle_views[k] for k in ks], s.cycle_targets[ks], densify=densify, step=it,
-                                   weights=None if s.cycle_weights is None else s.cycle_weights[ks])
+                                   weights=weights)
         if densify is not None and densify.densifies_at(it, r.iterations_per_cycle - 1):
             parallel.agree_on_rng(self)  # split samples: rank 0's draws on every process
         rep = None if densify is None else densify.refine(
