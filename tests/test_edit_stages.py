@@ -178,12 +178,12 @@ def test_an_object_beside_the_parts_silhouette_is_placed_on_the_part_not_behind_
     assert report["moved_onto_part"] == 0 and report["added"] == int(over_part.sum())
 
 
-def _ball_on_part(part_box, ball_box, other_depths=()):
+def _ball_on_part(part_box, ball_box, other_depths=(), region_px=0):
     """A part at depth 2 in front of a wall at 5-6 (32 x 32 px, looked at from 4 away), and an edit
     that puts a green ball at depth 1.9 over the box `ball_box` (rows, cols); `other_depths` sets
     the edited view's depth at some pixels ([((rows, cols), depth)]). Returns the camera, the
     part's 2D mask, the ball's, and `new_gaussians_from_depth`'s answer with the part's Gaussians
-    as the region."""
+    as the region (its 2D mask the part's grown by `region_px`)."""
     h = w = 32
     cam = look_at((0.0, 0.0, -4.0), size=w)
     part = torch.zeros(h, w, dtype=torch.bool)
@@ -198,10 +198,26 @@ def _ball_on_part(part_box, ball_box, other_depths=()):
     edited = unedited.clone()
     edited[ball] = torch.tensor([0.2, 0.8, 0.1])
     cfg = InitConfig(dilate_px=3, median=1, scale_factor=1.0)
-    out = new_gaussians_from_depth(cam, unedited, edited, part, d3, torch.ones(h, w), 2.0 / d3 + 0.3,
+    out = new_gaussians_from_depth(cam, unedited, edited, dilate(part, region_px), d3, torch.ones(h, w), 2.0 / d3 + 0.3,
                                    2.0 / true_depth + 0.3, cfg, sh_degree=0,
                                    region_means=unproject(cam, d3[part], part.nonzero()))
     return cam, part, ball, out
+
+
+def test_an_objects_rim_blurred_with_what_lies_behind_it_is_not_placed_behind_it():
+    """A ball (depth 1.9, 5 x 5 px) on a part (depth 2) at the part's silhouette: its last column
+    lies over the wall behind (depth 5), still inside the 2D region (the selection's render reaches
+    a pixel or two past the part). The estimator blurs the ball's disparity there with the wall's:
+    the transferred depth is 2.6, behind the ball by more than the ball's size, yet near the part,
+    so nothing else drops it. Gaussians placed there would float behind the ball, in the open in
+    every other view; the ball's other 20 pixels are placed at its depth."""
+    rim = (slice(12, 17), 16)
+    cam, part, ball, (params, report, _) = _ball_on_part((slice(4, 28), slice(2, 16)), (slice(12, 17), slice(12, 17)),
+                                                         other_depths=[(rim, 2.6)], region_px=2)
+    z = (params["means"] @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3])[:, 2]
+    assert float(z.max()) < 1.95, z  # on the ball (1.9), none at the blurred 2.6
+    assert report["added"] == int((ball & part).sum()) == 20
+    assert report["skipped_blurred_rim"] == int((ball & ~part).sum()) == 5
 
 
 def test_an_object_larger_than_its_part_is_placed_whole():
