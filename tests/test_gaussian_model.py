@@ -508,3 +508,31 @@ def test_restore_puts_rows_back_to_their_source_and_stops_adam_moving_them():
     model.set_trainable_mask(~back)
     adam_step(model, opt)
     assert torch.equal(model.sh_dc.detach()[back], source.sh_dc.detach()[[0, 6, 10]])
+
+
+def test_an_addition_densifies_only_the_gaussians_it_added_once_it_has_some():
+    """A selected source Gaussian of an addition keeps its position (refine.source_fixed); split
+    or cloned, its children would be free rows of the edit carved out of the fixed surface beside
+    the object. Once depth has added Gaussians only they densify; before (depth placed none) the
+    selection densifies to grow the object."""
+    from gs_regional.geometry.gaussian_model import EDITABLE
+    from gs_regional.stages.ablation import AblationConfig
+    from gs_regional.stages.strategies import Addition, RefineConfig
+
+    addition = Addition(RefineConfig(), AblationConfig())
+    m = _densify_setup()  # rows 0, 1 cloned (small), 2, 3 split (large), by their gradients
+    m.mask[0:4] = True
+    m.generation[[1, 3]] = 1  # two of them the edit added
+    m.set_trainable_mask(EDITABLE)
+    sources = m.means.detach()[[0, 2]].clone()
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0, grow=addition.growable(m))
+    assert out["cloned"] == 1 and out["split"] == 1  # the added rows 1 and 3
+    assert int((m.generation == 0).sum()) == 12 - 2  # every source row kept, none split
+    assert all(bool((m.means.detach() == p).all(1).any()) for p in sources)
+
+    m = _densify_setup()
+    m.mask[0:4] = True
+    m.set_trainable_mask(EDITABLE)
+    assert addition.growable(m) is None  # nothing added yet: the selection grows the object
+    out = DensifyStrategy(grad_threshold=0.5).densify_and_prune(m, 1.0, grow=addition.growable(m))
+    assert out["cloned"] == 2 and out["split"] == 2

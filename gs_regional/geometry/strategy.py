@@ -141,17 +141,19 @@ class DensifyStrategy:
         last_step: Optional[int] = None,
         base_count: Optional[int] = None,
         generator: Optional[torch.Generator] = None,
+        grow: Optional[torch.Tensor] = None,
     ) -> Optional[Dict[str, int]]:
         """After the optimizer step: densify and prune, then reset opacities, when due at `step`.
 
         Returns the densification report (cloned, split, pruned), or None when none was due.
         `base_count`: the number of Gaussians `budget` counts from. `generator`: for the split samples.
+        `grow`: (N,) bool the rows that may be cloned or split (None: every allowed row).
         """
         report = None
         if self.densifies_at(step, last_step):
             report = self.densify_and_prune(
                 model, scene_extent, optimizer, max_gaussians=self.max_count(base_count),
-                prune_large=self.prunes_large_at(step), generator=generator,
+                prune_large=self.prunes_large_at(step), generator=generator, grow=grow,
             )
         if self.resets_opacity_at(step):
             rows.reset_opacity(model, optimizer=optimizer, rows=self.allowed_rows(model))
@@ -167,6 +169,7 @@ class DensifyStrategy:
         max_gaussians: Optional[int] = None,
         prune_large: bool = False,
         generator: Optional[torch.Generator] = None,
+        grow: Optional[torch.Tensor] = None,
     ) -> Dict[str, int]:
         """One densification step of the original 3DGS; returns dict(cloned, split, pruned).
 
@@ -176,8 +179,9 @@ class DensifyStrategy:
         Then Gaussians with opacity < min_opacity are pruned and, with `prune_large`, those whose
         largest screen radius exceeds max_screen_size or whose world size exceeds 0.1 *
         scene_extent. Only `allowed_rows` are densified or pruned. `max_gaussians`: at most
-        max_gaussians - N new Gaussians, highest gradients first. Statistics are reset afterwards,
-        as in the original trainer.
+        max_gaussians - N new Gaussians, highest gradients first. `grow`: (N,) bool, of the allowed
+        rows those that may be cloned or split (None: all; pruning is not limited by it).
+        Statistics are reset afterwards, as in the original trainer.
         """
         n0 = model.num_gaussians
         dev = model.means.device
@@ -186,7 +190,7 @@ class DensifyStrategy:
         if allowed is None:
             allowed = torch.ones(n0, dtype=torch.bool, device=dev)
         max_scale = model.scales.max(dim=1).values if n0 else model.means.new_zeros(0)
-        high = (grads >= self.grad_threshold) & allowed
+        high = (grads >= self.grad_threshold) & allowed & (True if grow is None else grow.to(dev))
         small = max_scale <= self.percent_dense * scene_extent
         clone_sel, split_sel = high & small, high & ~small
         if max_gaussians is not None:

@@ -242,6 +242,10 @@ class EditStrategy:
     def after_edits(self, system) -> None:
         pass
 
+    def growable(self, geometry) -> Optional[torch.Tensor]:
+        """(N,) bool the rows densification may clone or split, None: every row it may change."""
+        return None
+
     def finish(self, system) -> None:
         pass
 
@@ -428,6 +432,18 @@ class Addition(EditStrategy):
         other sides: the first view's depth placed the side it sees)."""
         if self.regional and self.ablation.initialize:
             system.fill_from_cycle_depth()
+
+    def growable(self, geometry) -> Optional[torch.Tensor]:
+        """Once the edit has added Gaussians, only they densify: a selected source Gaussian keeps
+        its position (`refine.source_fixed`), and its clone or split children would be rows of the
+        edit, free, carved out of the fixed surface beside the object, which take the object's
+        colour there and spread it (402113 c11 at twice the steps: 7 of 11 splits were of source
+        Gaussians 2.6-3.9 object radii away, and their children ended opaque off the object).
+        Before any is added (depth placed none), the selection's Gaussians densify to grow it."""
+        if "means" not in self.cfg.source_fixed or self.ablation.optimize_all:
+            return None
+        added = geometry.generation > 0
+        return added if bool(added.any()) else None
 
     def first_view_is_target(self, neighbours: int) -> bool:
         # A full edit from pure noise places the object the farthest from where the other views put

@@ -466,6 +466,7 @@ class RegionalEdit(EditSystemBase):
         rep = None if densify is None else densify.refine(
             self.geometry, it, self.scene.extent, self.optimizers().optimizer,
             last_step=r.iterations_per_cycle - 1, base_count=s.refine_start_count,
+            grow=self.strategy.growable(self.geometry),
         )
         if rep is not None:
             parallel.check_agree(self, f"the densification of step {step}", [self.geometry.num_gaussians])
