@@ -461,12 +461,13 @@ class RegionalEdit(EditSystemBase):
         else:  # the step's views shared out over the processes of a run on several devices
             self.optimize_on_views([s.cycle_views[k] for k in ks], s.cycle_targets[ks], densify=densify, step=it,
                                    weights=weights)
-        if densify is not None and densify.densifies_at(it, r.iterations_per_cycle - 1):
+        due = densify is not None and densify.densifies_at(it, r.iterations_per_cycle - 1)
+        if due:
             parallel.agree_on_rng(self)  # split samples: rank 0's draws on every process
         rep = None if densify is None else densify.refine(
             self.geometry, it, self.scene.extent, self.optimizers().optimizer,
             last_step=r.iterations_per_cycle - 1, base_count=s.refine_start_count,
-            grow=self.strategy.growable(self.geometry),
+            grow=self.strategy.growable(self.geometry) if due else None,  # once a cycle, not every step
         )
         if rep is not None:
             parallel.check_agree(self, f"the densification of step {step}", [self.geometry.num_gaussians])
