@@ -15,7 +15,9 @@ from plyfile import PlyData
 from trial_helpers import ROOT, launch, launch_args, metrics_of, ply_arrays, trial_of, write_scene_folder
 from gs_regional.data.scene import split_every
 from gs_regional.sim.scene import make_cameras, make_edit
-from gs_regional.stages.localize import edge_colour_references, localize_gaussians, outside_like_edge_votes
+from gs_regional.stages.localize import (
+    EVIDENCE_PRIOR, edge_colour_references, localize_gaussians, outside_like_edge_votes,
+)
 from gs_regional.stages.views import spread_subset
 from gs_regional.launch import main
 from gs_regional.metrics.region import mask_metrics
@@ -116,6 +118,9 @@ class MatrixWeights(PixelWeights):
         out = torch.einsum("nhw,hwc->nc", self.w, img.float())
         return out[:, 0] if flat else out
 
+    def splat(self, feats):
+        return torch.einsum("nhw,nc->hwc", self.w, feats.float())
+
 
 def test_edge_votes_drop_only_gaussians_that_look_like_the_outside():
     """A mask one pixel too wide on a two-coloured image: of two Gaussians seen in that edge
@@ -139,6 +144,35 @@ def test_edge_votes_drop_only_gaussians_that_look_like_the_outside():
     grey = torch.full((1, 12, 12, 3), 0.5)  # nothing to tell the edge from the outside
     edge, mean_in, mean_out = edge_colour_references(mask, grey)
     assert not bool(outside_like_edge_votes(MatrixWeights(w), colours, edge[0], mean_in[0], mean_out[0], 0.5).any())
+
+
+def test_a_gaussian_the_views_barely_see_is_not_selected_on_the_little_it_shows():
+    """Two views of a region (the masks' 6x6 square): four of its Gaussians seen well inside the
+    masks, one outside them, and one that shows a hundredth of a pixel a view, all of it inside the
+    masks (a neighbour's Gaussian behind the region's rim, as the body under a recoloured ground).
+    Its vote is as high as the region's; the evidence prior leaves it out and keeps the region.
+    A part whose every Gaussian is that faint (a part a pixel across) is still selected whole: the
+    prior is relative to what the selected Gaussians typically show."""
+    masks = [torch.zeros(12, 12) for _ in range(2)]
+    for m in masks:
+        m[2:8, 2:8] = 1
+    w = torch.zeros(6, 12, 12)
+    for i in range(4):  # the region's Gaussians: 2 px of weight a view, inside
+        w[i, 2 + i, 2:6] = 0.5
+    w[4, 3:5, 6:8] = 0.0025  # behind the rim: 0.01 px a view, inside
+    w[5, 9:11, 2:6] = 0.25  # outside
+    lift = dict(threshold=0.5, knn=1, reweight_iters=0)
+
+    def selected(weights, prior):
+        views = [MatrixWeights(weights)] * 2
+        return localize_gaussians(None, None, [None, None], masks, reuse={"views": views, "neighbourhood": None},
+                                  evidence_prior=prior, **lift)["selected"].tolist()
+
+    assert selected(w, 0.0) == [True] * 5 + [False]  # the plain vote takes it on the little it shows
+    assert selected(w, EVIDENCE_PRIOR) == [True] * 4 + [False, False]
+    faint = w.clone()
+    faint[:4] *= 0.005
+    assert selected(faint, EVIDENCE_PRIOR) == [True] * 5 + [False]
 
 
 def test_regional_edit_outputs_and_fidelity_against_in2n(runs):

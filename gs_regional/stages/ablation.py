@@ -16,7 +16,7 @@ class AblationConfig:
     # For scenes with a known edit: the true region is the selection (localization still runs), to
     # measure what the rest of the method loses to localization.
     localize_with_truth: bool = False
-    plain_vote: bool = False  # the paper's lift: no view re-weighting, no neighbour pooling
+    plain_vote: bool = False  # the paper's lift: no view re-weighting, no neighbour pooling, no evidence prior
     constant_t: Optional[int] = None  # one start timestep for every cycle instead of the schedules
     optimize_all: bool = False  # gradients reach every Gaussian (the paper's setting)
     composite: bool = True  # false trains on the whole edited views, the editor's changes outside the region too

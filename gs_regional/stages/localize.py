@@ -22,6 +22,11 @@ AGREEMENT_POWER = 2.0  # a view's weight: IoU(2D mask, rendered 3D mask) ** this
 # outside's local mean than to the interior's by this factor: blobby relevance maps reach a pixel
 # past the region, and a surface seen edge-on beside it (a neck under a head) would be selected whole.
 EDGE_COLOUR_RATIO = 0.5
+# Each Gaussian's pooled vote counts this fraction of the pooled rendering weight a selected one
+# typically has (the median over those selected without it) as weight outside the masks: a
+# Gaussian the views barely see (a neighbour's behind the region's rim) is not selected on the
+# little it shows, all of it inside blobby masks; a part whose Gaussians are all faint still is.
+EVIDENCE_PRIOR = 0.02
 # The views-disagree stop counts a mask pixel within this many pixels of the other mask as shared:
 # a part a few pixels across, its masks a pixel off, is the same place.
 AGREEMENT_TOLERANCE_PX = 1
@@ -75,9 +80,10 @@ class LocalizeConfig:
 
     def lift(self, plain_vote: bool = False) -> dict:
         """The keyword arguments of `localize_gaussians` (`plain_vote`: the paper's vote, no view
-        re-weighting nor neighbour pooling)."""
+        re-weighting, neighbour pooling or evidence prior)."""
         return dict(threshold=self.mask_threshold, reweight_iters=0 if plain_vote else REWEIGHT_ITERS,
-                    agreement_power=AGREEMENT_POWER, knn=1 if plain_vote else self.knn, edge_ratio=EDGE_COLOUR_RATIO)
+                    agreement_power=AGREEMENT_POWER, knn=1 if plain_vote else self.knn, edge_ratio=EDGE_COLOUR_RATIO,
+                    evidence_prior=0.0 if plain_vote else EVIDENCE_PRIOR)
 
 
 @torch.no_grad()
@@ -197,6 +203,7 @@ def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
     reweight_iters: int = REWEIGHT_ITERS, agreement_power: float = AGREEMENT_POWER, knn: int = 16,
     images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, reuse: Optional[dict] = None,
+    evidence_prior: float = 0.0,
 ) -> dict:
     """§3.1 step 4 with three robustness steps of our own (all can be switched off):
 
@@ -210,6 +217,9 @@ def localize_gaussians(
       the lift is repeated `reweight_iters` times; views that disagree with the consensus fade.
     * neighbour pooling (point expansion): votes are summed over the `knn` nearest Gaussians, so
       rarely seen Gaussians follow their neighbourhood.
+    * evidence prior (`evidence_prior` > 0, EVIDENCE_PRIOR): each pooled vote also counts that
+      fraction of the median pooled weight of the Gaussians selected without it as weight outside
+      the masks, so one that shows the views next to nothing is not selected; 0 changes nothing.
     `reuse`: the result of an earlier lift of the same geometry from the same cameras with the same
     `knn`: its pixel weights and neighbourhoods are taken as they are (no new renders, no new search).
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
@@ -238,6 +248,9 @@ def localize_gaussians(
         if neighbourhood is not None:
             s_num, s_den = knn_pool(s_num, s_den, neighbourhood)
         scores = torch.where(s_den > 1e-8, s_num / s_den.clamp_min(1e-8), torch.zeros_like(s_num))
+        if evidence_prior > 0 and bool((scores > threshold).any()):
+            prior = evidence_prior * float(s_den[scores > threshold].median())
+            scores = s_num / (s_den + prior)
         selected = scores > threshold
         if it < reweight_iters and bool(selected.any()):
             weights = mask_agreement(views, masks, selected) ** agreement_power

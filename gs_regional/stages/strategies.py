@@ -71,17 +71,20 @@ RECOLOURED_PIXEL_FLOOR = 0.05
 STILL_DISTINCT = 0.5
 
 # A later cycle of a recolour starts at the training view in which the selected Gaussians no
-# edited view has seen yet cover the most, when they cover at least this fraction of its pixels:
-# a part seen from every side (a donut's dough) was otherwise edited from one side only. Below it
-# (a thin part's hidden side, seen edge-on) the edit's jitter there spills onto the neighbours more
-# than it adds. When the unseen Gaussians are at least UNEDITED_MIN_SHARE of the selection (a
-# body seen from the front, its back and sides left at their source colours: half of the part's
-# error), a view they cover UNEDITED_MIN_SHARE_AREA of is enough: the side they make up matters
-# more than another cycle on the sides already edited.
+# edited view has seen well yet (`Recolour.poorly_seen`) cover the most, when they cover at least
+# this fraction of its pixels: a part seen from every side (a donut's dough) was otherwise edited
+# from one side only. Below it (a thin part's hidden side, seen edge-on) the edit's jitter there
+# spills onto the neighbours more than it adds. When the unseen Gaussians are at least
+# UNEDITED_MIN_SHARE of the selection (a body seen from the front, its back and sides left at their
+# source colours: half of the part's error), a view they cover UNEDITED_MIN_SHARE_AREA of is
+# enough: the side they make up matters more than another cycle on the sides already edited.
 UNEDITED_MIN_AREA = 0.04
 UNEDITED_MIN_SHARE = 0.3
 UNEDITED_MIN_SHARE_AREA = 0.01
 UNEDITED_CANDIDATES = 32  # training views looked at (spread over them)
+# A selected Gaussian is seen well once the edited views, all together, have seen it this many
+# times as much as the one training view that sees it best (`Recolour.poorly_seen`).
+WELL_SEEN = 1.0
 
 # An edit whose depth shows a change of shape of fewer Gaussians than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
@@ -293,20 +296,39 @@ class Recolour(EditStrategy):
         self.blend_votes: Optional[torch.Tensor] = None  # (2, N) the gate's sums over the edited views
         self.was_distinct: Optional[torch.Tensor] = None  # (N,) found a part of its own in an earlier cycle
         self.unedited_cycles: List[int] = []  # the later cycles that went where the part was still unedited
+        self.best_weights: Optional[torch.Tensor] = None  # (N,) each row's weight in the view that sees it best
+
+    @torch.no_grad()
+    def poorly_seen(self, system, seen: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the rows that the views which saw them `seen` (rendering weight summed over
+        them, in pixels) have seen less, all together, than the one training view that sees them
+        best (of UNEDITED_CANDIDATES), or not at all (under SEEN_MIN_WEIGHT). Why: the back of a
+        head edited from the front is seen edge-on at its rim by every edited view, recoloured
+        faintly there and declined by the gate; counted as seen, no cycle went to it (a whole
+        head's recolour kept its back). A recolour keeps its geometry: the best views are found once."""
+        g = system.geometry
+        if self.best_weights is None or self.best_weights.shape[0] != g.num_gaussians:
+            best = torch.zeros(g.num_gaussians, device=system.device)
+            for v in spread_subset(system.scene.train_indices, UNEDITED_CANDIDATES):
+                cam = system.scene.cameras[v].to(system.device)
+                view = system.renderer.pixel_weights(g, cam)
+                best = torch.maximum(best, view.gather(torch.ones(cam.height, cam.width, device=system.device)))
+            self.best_weights = best
+        return seen < (WELL_SEEN * self.best_weights).clamp_min(SEEN_MIN_WEIGHT)
 
     @torch.no_grad()
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
         """A later cycle goes where the part is still unedited: its frontal view is the training
-        view in which the selected Gaussians no edited view has seen (the gate's votes count what
-        the edited views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels
-        (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of the selection); half of its
-        neighbours are the nearest cameras to it, the rest the schedule's. Otherwise the schedule's
-        views."""
+        view in which the selected Gaussians the edited views have not seen well (`poorly_seen`;
+        the gate's votes count what the edited views saw) cover the most, at least
+        UNEDITED_MIN_AREA of its pixels (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of
+        the selection); half of its neighbours are the nearest cameras to it, the rest the
+        schedule's. Otherwise the schedule's views."""
         if cycle == 0 or self.blend_votes is None or not self.regional:
             return frontal, near
         g, scene = system.geometry, system.scene
         selected = rows.of_source(g, system.state.source_selection)
-        unseen = selected & (self.blend_votes[1] < SEEN_MIN_WEIGHT)
+        unseen = selected & self.poorly_seen(system, self.blend_votes[1])
         if not bool(unseen.any()):
             return frontal, near
         share = int(unseen.sum()) / int(selected.sum())
@@ -322,8 +344,8 @@ class Recolour(EditStrategy):
         if cycle not in self.unedited_cycles:
             self.unedited_cycles.append(cycle)
         system.counts["unedited_cycles"] = len(self.unedited_cycles)
-        log.info("refine %d: the selected Gaussians no edited view has seen cover %.0f%% of view %d; the cycle "
-                 "starts there", cycle + 1, 100 * most, best)
+        log.info("refine %d: the selected Gaussians no edited view has seen well cover %.0f%% of view %d; the "
+                 "cycle starts there", cycle + 1, 100 * most, best)
         # Half of the cycle's views go there; the rest are the schedule's, which would otherwise
         # lose a cycle of refinement on the sides already edited.
         there = nearest_cameras(scene.cameras, best, self.cfg.m // 2, scene.train_indices)
@@ -384,7 +406,7 @@ class Recolour(EditStrategy):
         system.counts["recolour_taken"] = int((seen & takes).sum())
         if s.targets_cycle in self.unedited_cycles:
             # the part this cycle edits for the first time: its colours land on the targets at once
-            colour_step(g, takes & (seen_before < SEEN_MIN_WEIGHT), weights, s.cycle_targets,
+            colour_step(g, takes & self.poorly_seen(system, seen_before), weights, s.cycle_targets,
                         [system.render_view(j)["rgb"] for j in s.cycle_views])
 
     def finish(self, system) -> None:
@@ -404,6 +426,8 @@ class Recolour(EditStrategy):
         self.unedited_cycles = list(state.get("unedited_cycles") or [])
 
     def to(self, device) -> "Recolour":
+        if self.best_weights is not None:
+            self.best_weights = self.best_weights.to(device)
         if self.blend_votes is not None:
             self.blend_votes = self.blend_votes.to(device)
         if self.was_distinct is not None:
