@@ -16,7 +16,7 @@ number on a machine shared with other work. Stages:
                  votes summed over them
   localize       localization without the diffusion model: rendering-weight votes from 24 views at
                  256x256 (--localize-views, --localize-size), 2 reweighting passes (a render per
-                 view each), kNN pooling (neighbours found once), point expansion
+                 view each), kNN pooling (neighbours found once), the evidence prior, point expansion
                  (radius 1% of the scene extent) and the selection rendered back into the 24 views
   append         depth initialization's append (geometry.rows.append) of N/100 new Gaussians, with
                  Adam state
@@ -212,6 +212,7 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
                 with torch.no_grad():
                     lifted = localize_gaussians(
                         model, renderer, cams, masks, threshold=lc.mask_threshold, knn=lc.knn,
+                        evidence_prior=lc.lift()["evidence_prior"],
                     )
                     selected = expand_selection(means, lifted["selected"], 0.01 * SCENE_EXTENT)
                     for view in lifted["views"]:  # the render-back, from the views' kept weights
