@@ -205,7 +205,7 @@ def localize_gaussians(
     images: Optional[torch.Tensor] = None, edge_ratio: float = 0.0, reuse: Optional[dict] = None,
     evidence_prior: float = 0.0,
 ) -> dict:
-    """§3.1 step 4 with three robustness steps of our own (all can be switched off):
+    """§3.1 step 4 with four robustness steps of our own (all can be switched off):
 
     * edge test (`edge_ratio` > 0, needs the views' `images` (V, H, W, 3)): a Gaussian's votes from
       a mask's one-pixel edge are dropped in a view where its own colour looks like the outside's
