@@ -186,6 +186,8 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
         f"data.source={scene}", "data.test_every=8", f"system.geometry.ply={scene / 'point_cloud.ply'}",
         "system.prompt=give him a mustache", "system.seed=3",
         f"system.guidance.pretrained={tiny_models['ip2p']}", "system.guidance.num_inference_steps=4",
+        # float32 on every device: `dtype: auto` is float16 on CUDA, whose rounding alone passes 1e-3.
+        "system.guidance.dtype=float32",
         "system.guidance_type=seed-recording-ip2p", "system.ablation.initialize=false",
         "system.localization.max_views=4", "system.localization.gamma=0.5", "system.localization.mask_threshold=0.3",
         "system.refine.cycles=1", "system.refine.t_schedule=[750]", "system.refine.shape_t_schedule=[750]",
@@ -194,8 +196,9 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
         "trainer.enable_progress_bar=false",
     ]
     runs, calls = {}, {}
-    n = torch.get_num_threads()
+    n, tf32 = torch.get_num_threads(), torch.backends.cudnn.allow_tf32
     torch.set_num_threads(1)  # tiny models: see tiny_models_fixture.one_thread
+    torch.backends.cudnn.allow_tf32 = False  # on CUDA, convolutions in full float32 (TF32 is torch's default)
     try:
         for batch in (1, 3):
             SeedRecordingIP2P.calls = []
@@ -204,6 +207,7 @@ def test_batched_cycle_edits_equal_one_view_at_a_time_with_ip2p(tmp_path, tiny_m
             calls[batch] = [c for c in SeedRecordingIP2P.calls if c[0] == 750]
     finally:
         torch.set_num_threads(n)
+        torch.backends.cudnn.allow_tf32 = tf32
     views = runs[1]["cycle_views"]
     assert runs[3]["cycle_views"] == views and len(views) == 5
     # The m=5 neighbours of v_first: without depth initialization the shape may change, so the
