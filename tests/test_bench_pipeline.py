@@ -55,6 +55,11 @@ def test_tiny_pipeline_report(report):
         # The profile: start-up (what the stages do not time), the UNet's seconds and share of the
         # wall time, and the views per UNet call batch_size auto chose (1 on a CPU) at 64x64.
         assert 0 < run["startup_seconds"] < run["wall_seconds"]
+        # ... split by phase (launch's clock in metrics.json; "process" the rest), adding up to it.
+        parts = run["startup_parts"]
+        assert list(parts) == ["plugins", "scene", "system", "trainer", "lightning", "unstaged", "process"]
+        assert all(v >= 0 for v in parts.values()) and parts["system"] > 0
+        assert sum(parts.values()) == pytest.approx(run["startup_seconds"], abs=0.01)
         assert 0 < run["unet_seconds"] < run["wall_seconds"] and 0 < run["unet_share"] <= 1
         assert run["unet_share"] == pytest.approx(run["unet_seconds"] / run["wall_seconds"], abs=1e-3)
         assert run["batch_size"] == {"64x64": 1}

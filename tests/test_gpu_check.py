@@ -448,7 +448,7 @@ def test_the_paper_budget_runs_each_size_and_writes_the_breakdown(tmp_path, monk
         n = int(argv[argv.index("--gaussians") + 1])
         seen.append(n)
         run = {"seconds": {"localize": 1.0, "refine_edit": 2.0}, "seconds_total": 3.0, "wall_seconds": 5.0,
-               "startup_seconds": 2.0, "unet_evals": 12, "unet_seconds": 1.5, "unet_share": 0.3,
+               "startup_seconds": 2.0, "startup_parts": {"system": 1.3, "unstaged": 0.5, "process": 0.2}, "unet_evals": 12, "unet_seconds": 1.5, "unet_share": 0.3,
                "batch_size": {"64x64": 1}, "prior_wait_seconds": 0.0, "vae_encodes": 3, "vae_decodes": 1,
                "cuda_peak_bytes": None, "peak_rss_bytes": 2**30, "gaussians_after": n}
         return {"models": "tiny", "dtype": "float32", "device": {"device": "cpu"}, "scene": {"gaussians": n, "width": 64},
@@ -458,12 +458,14 @@ def test_the_paper_budget_runs_each_size_and_writes_the_breakdown(tmp_path, monk
     res = gpu_checks.check_paper_budget(ctx)
     assert seen == [2_000, 4_000]
     assert res["2k_wall_s"] == 5.0 and res["4k_unet_share"] == 0.3 and res["2k_batch"] == "1"
+    assert res["2k_startup_parts"] == "system 1.3, unstaged 0.5, process 0.2"
     with open(res["breakdown"]) as f:
         breakdown = json.load(f)
     assert os.path.dirname(res["breakdown"]) == str(tmp_path)
     assert set(breakdown["runs"]) == {"2k", "4k"}
     r = breakdown["runs"]["4k"]
     assert r["stages_s"] == {"localize": 1.0, "refine_edit": 2.0} and r["startup_s"] == 2.0 and r["unet_s"] == 1.5
+    assert r["startup_parts_s"] == {"system": 1.3, "unstaged": 0.5, "process": 0.2}
     assert r["batch_size"] == {"64x64": 1} and r["peak_rss_gib"] == 1.0
 
     def failing(argv):

@@ -122,6 +122,12 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
     assert f"mask IoU {m['mask_iou']:.3f}" in rows["metrics"]
     assert f"PSNR vs true edit {m['psnr_vs_true_edit']:.2f} dB" in rows["metrics"]
     assert all(stage in rows["stages (s)"] for stage in ("localize", "initialize", "refine_train", "output"))
+    # The time outside the stages, split by phase, in the summary and in metrics.json.
+    setup = m["seconds_setup"]
+    assert list(setup) == ["plugins", "scene", "system", "trainer", "lightning"] and all(v >= 0 for v in setup.values())
+    assert rows["start-up (s)"] == (", ".join(f"{k} {v:.1f}" for k, v in setup.items())
+                                    + f"; in training outside the stages {m['seconds_unstaged']:.1f}")
+    assert 0 < m["seconds_unstaged"] < m["seconds_total"]
     paths = {label: Path(rows[label]) for label in ("edited scene", "before/after", "turntable", "metrics.json")}
     for label, path in paths.items():
         assert path.is_file() and path.parent == trial / "save", (label, path)

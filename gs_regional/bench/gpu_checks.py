@@ -25,7 +25,7 @@ and failed raises CheckFailed or returns its results with `_fail` (the reason).
   paper_budget     the paper's budget (pipeline.py BUDGETS["real-size"]: 3 cycles of 500 steps, m = 20,
                    24 localization views, 20 DDIM steps) with --fp16 at 512², the synthetic scene
                    resampled to 100,000 and to 1,000,000 Gaussians (no in2n, no load step): per run
-                   every stage, start-up, the UNet's seconds and share of the wall time, the views per
+                   every stage, start-up split by phase, the UNet's seconds and share of the wall time, the views per
                    UNet call batch_size auto chose, the wait for the priors, peak CUDA memory and RSS;
                    written as paper_budget.json beside the table's JSON
   donut_edit       the donut (../shared/data/donut/donut.ply, or $GS_REGIONAL_DATA) edited end to end
@@ -418,7 +418,7 @@ def check_paper_budget(ctx: dict) -> dict:
         run = report["runs"]["regional-edit"]
         runs[_count_label(n)] = {
             "gaussians": report["scene"]["gaussians"], "wall_s": run["wall_seconds"], "startup_s": run["startup_seconds"],
-            "stages_s": run["seconds"], "stages_total_s": run["seconds_total"], "unet_evals": run["unet_evals"],
+            "startup_parts_s": run["startup_parts"], "stages_s": run["seconds"], "stages_total_s": run["seconds_total"], "unet_evals": run["unet_evals"],
             "unet_s": run["unet_seconds"], "unet_share": run["unet_share"], "batch_size": run["batch_size"],
             "prior_wait_s": run["prior_wait_seconds"], "vae_encodes": run["vae_encodes"], "vae_decodes": run["vae_decodes"],
             "cuda_peak_gib": _gib(run["cuda_peak_bytes"]), "peak_rss_gib": _gib(run["peak_rss_bytes"]),
@@ -433,6 +433,7 @@ def check_paper_budget(ctx: dict) -> dict:
     res: Dict[str, Any] = {}
     for label, r in runs.items():
         res.update({f"{label}_wall_s": r["wall_s"], f"{label}_startup_s": r["startup_s"],
+                    f"{label}_startup_parts": ", ".join(f"{k} {v:.1f}" for k, v in r["startup_parts_s"].items()),
                     f"{label}_unet_share": r["unet_share"],
                     f"{label}_batch": ",".join(str(b) for b in r["batch_size"].values()) or "-",
                     f"{label}_cuda_peak_gib": r["cuda_peak_gib"]})

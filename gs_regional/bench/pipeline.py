@@ -22,7 +22,8 @@ Steps, each in its own process (so that peak CPU RSS and peak CUDA memory are pe
   in2n           the same data/guidance sections with system_type in2n
 It writes DIR/bench_pipeline.json and prints a table: per-stage seconds (the names of the runs'
 metrics.json: localize, initialize, refine_edit, refine_train, ... ), start-up (the wall time the
-stages do not cover), UNet evaluations, the UNet's seconds and share of the wall time, the views
+stages do not cover; a line per run splits it: plugins, scene, system, trainer, lightning, unstaged
+= checkpoints and Lightning's loop in training, process = interpreter, imports, exit), UNet evaluations, the UNet's seconds and share of the wall time, the views
 per UNet call the guidance chose (batch_size auto), VAE encodes/decodes, peak CPU RSS and peak
 CUDA memory, with the device named. --no-load skips the load step.
 """
@@ -303,6 +304,18 @@ def unet_profile(metrics: dict, wall_seconds: float) -> dict:
             "prior_wait_seconds": metrics.get("prior_wait_seconds")}
 
 
+def startup_parts(metrics: dict, wall_seconds: float) -> dict:
+    """The start-up (the child's wall time outside the stages) split by phase: launch's
+    `seconds_setup` (plugins, scene, system, trainer, lightning), `seconds_unstaged` (in training
+    outside the stages: checkpoints, Lightning's loop) and "process" (the rest: interpreter start,
+    imports before launch, the summary, exit)."""
+    parts = dict(metrics.get("seconds_setup", {}))
+    if "seconds_unstaged" in metrics:
+        parts["unstaged"] = metrics["seconds_unstaged"]
+    parts["process"] = round(wall_seconds - metrics["seconds_total"] - sum(parts.values()), 3)
+    return parts
+
+
 def device_description(device: str) -> dict:
     import torch
 
@@ -354,6 +367,8 @@ def table(report: dict) -> str:
                  _gib(r["peak_rss_bytes"]), _gib(r["cuda_peak_bytes"])]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
+    for label, r in runs.items():
+        lines.append(f"{label} start-up (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r.get("startup_parts", {}).items()))
     if "load" in report:
         lines.append(load_line(report["load"]))
     sc = report["scene"]
@@ -469,6 +484,7 @@ def main(argv=None) -> dict:
             "seconds": m["seconds"], "seconds_total": m["seconds_total"], "wall_seconds": child["wall_seconds"],
             # process start, imports, loading the priors, Lightning set-up: what the stages do not time
             "startup_seconds": round(child["wall_seconds"] - m["seconds_total"], 3),
+            "startup_parts": startup_parts(m, child["wall_seconds"]),
             "unet_evals": m["unet_evals"], "vae_encodes": m["vae_encodes"], "vae_decodes": m["vae_decodes"],
             **unet_profile(m, child["wall_seconds"]),
             "peak_rss_bytes": child["peak_rss_bytes"], "cuda_peak_bytes": child["cuda_peak_bytes"],

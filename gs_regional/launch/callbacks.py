@@ -9,8 +9,20 @@ import sys
 import time
 from typing import Any, Dict, Optional, TextIO
 
-from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar, TQDMProgressBar
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint, ProgressBar, TQDMProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
+
+
+class FitStartClock(Callback):
+    """When Lightning's fit reached the system's `on_fit_start` (callbacks' hooks run first): the
+    time from `trainer.fit` to here is Lightning's set-up (strategy, device moves, the system's
+    `setup`)."""
+
+    def __init__(self) -> None:
+        self.at: Optional[float] = None
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        self.at = time.perf_counter()
 
 
 class TrialCheckpoint(ModelCheckpoint):

@@ -23,10 +23,12 @@ from gs_regional.launch.logs import LIGHTNING_LOGGERS, filter_warnings
 from gs_regional.launch.modes import STAGES, run_mode
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
 from gs_regional.launch.sections import section_configs
-from gs_regional.launch.summary import RunInfo, print_summary
+from gs_regional.launch.callbacks import FitStartClock
+from gs_regional.launch.summary import RunInfo, print_summary, read_metrics
 from gs_regional.launch.trial import TrialLock, check_writable, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
 from gs_regional.registry import find, load_builtins
 from gs_regional.systems import parallel
+from gs_regional.utils.io import write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +150,7 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
     """run(), returning the trial dir (None in a process that follows rank 0): gs_regional.edit's way in.
     `callbacks`: more Lightning callbacks for the trainer (the studio's progress and Stop)."""
     started, started_at = time.perf_counter(), time.time()
+    clock = PhaseClock(started)
     verbose = bool(args.verbose or args.debug)
     mode = run_mode(args)
     if args.export == "region":
@@ -155,6 +158,7 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
     # Built-ins first, so that a plugin reusing a built-in name fails in its own import.
     load_builtins()
     load_plugins(args.custom_dir or custom_dir or default_custom_dir(), debug=args.debug)
+    clock.mark("plugins")
 
     # In a process that Lightning's launcher started for a run on several devices: rank 0's trial.
     follower = parallel.handed_down_trial()
@@ -184,6 +188,7 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
             check_writable(Path(cfg.exp_root_dir))  # a read-only output folder fails before any load
         datamodule = dm_cls(cfg.data)
         datamodule.setup(STAGES[mode])
+        clock.mark("scene")
         if hasattr(system_cls, "check_inputs"):
             system_cls.check_inputs(cfg.system)
         checkpoint = None
@@ -193,6 +198,7 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
                                           getattr(system_cls, "RESUME_FIXED_KEYS", ()))
         parallel.use_process_gpu(_container(cfg.trainer, "trainer"), args.gpu)  # priors onto this process's GPU
         system = system_cls(cfg.system, resumed=bool(resume))
+        clock.mark("system")
         kw = trainer_kwargs(cfg, system, mode, args.gpu, verbose)
         kw = data_parallel_kwargs(kw, system, mode, getattr(datamodule, "scene", None))
         checkpoint_settings(cfg)
@@ -209,14 +215,18 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
                 log.warning("resume: the config differs from the checkpoint's (%s); this run uses the new values, "
                             "written to %s", "; ".join(changes), trial / "configs" / f"parsed@{cfg.timestamp}.yaml")
             del checkpoint  # Lightning reads it again (the mapped file is not held meanwhile)
-            trainer = _make_trainer(cfg, kw, trial, reused, callbacks)
+            fit_clock = FitStartClock()
+            trainer = _make_trainer(cfg, kw, trial, reused, [*callbacks, fit_clock])
             system.set_trial_dir(trial)
             system.attach_datamodule(datamodule)
             log.info("trial dir: %s", trial)
+            clock.mark("trainer")
             setup_seconds = time.perf_counter() - started
             if mode == "train":
                 with parallel.hand_down_trial(trial, cfg.timestamp):  # to the processes Lightning launches
                     trainer.fit(system, datamodule=datamodule, ckpt_path=resume)
+                if follower is None:
+                    record_fit_seconds(trial, clock, fit_clock, resumed=bool(resume))
             elif mode == "validate":
                 trainer.validate(system, datamodule=datamodule, ckpt_path=resume)
             elif mode == "test":
@@ -228,9 +238,42 @@ def run_trial(args: argparse.Namespace, overrides: List[str], argv: List[str], c
     print_summary(RunInfo(
         trial=trial, mode=mode, config_path=args.config, system_type=cfg.system_type, data_type=cfg.data_type,
         resume=resume, steps=trainer.global_step if mode == "train" else None,
-        setup_seconds=setup_seconds, wall_seconds=time.perf_counter() - started, started_at=started_at,
+        setup_seconds=setup_seconds, setup_parts=clock.seconds, wall_seconds=time.perf_counter() - started,
+        started_at=started_at,
     ))
     return trial
+
+
+class PhaseClock:
+    """Seconds of the phases of a run's start, each from the end of the one before."""
+
+    def __init__(self, started: float) -> None:
+        self.last, self.seconds = started, {}
+
+    def mark(self, phase: str, at: Optional[float] = None) -> None:
+        at = time.perf_counter() if at is None else at
+        self.seconds[phase] = round(at - self.last, 3)
+        self.last = at
+
+
+def record_fit_seconds(trial: Path, clock: PhaseClock, fit_clock: FitStartClock, resumed: bool) -> None:
+    """Where a training run's time outside its stages went, added to save/metrics.json (when the
+    system wrote one): `seconds_setup` (plugins, scene, system with its priors, trial and trainer,
+    Lightning's set-up up to the system's on_fit_start) and `seconds_unstaged` (the rest of fit
+    outside the stages: Lightning's loop, checkpoints, teardown; not for a resumed run, whose
+    stage seconds include the run before)."""
+    ended = time.perf_counter()
+    if fit_clock.at is not None:
+        clock.mark("lightning", fit_clock.at)
+    path = trial / "save" / "metrics.json"
+    if not path.is_file():
+        return
+    metrics = read_metrics(trial)
+    extra: Dict[str, Any] = {"seconds_setup": dict(clock.seconds)}
+    stages = metrics.get("seconds_total")
+    if fit_clock.at is not None and not resumed and isinstance(stages, (int, float)):
+        extra["seconds_unstaged"] = round(max(0.0, ended - fit_clock.at - stages), 3)
+    write_json_atomic(path, {**metrics, **extra})
 
 
 def run_config(cfg: Any) -> Dict[str, Any]:

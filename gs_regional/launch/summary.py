@@ -7,7 +7,7 @@ import json
 import logging
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -54,6 +54,7 @@ class RunInfo:
     setup_seconds: float  # plugins, config, data and system, before Lightning runs
     wall_seconds: float
     started_at: float  # time.time() at the start, to tell this run's outputs from older ones
+    setup_parts: Dict[str, float] = field(default_factory=dict)  # run.py's PhaseClock: seconds per phase
 
 
 def read_metrics(trial: Path) -> Dict[str, Any]:
@@ -127,6 +128,11 @@ def format_summary(info: RunInfo) -> str:
         what += f", resumed from {info.resume}"
     rows: List[Tuple[str, str]] = [("ran", what)]
     rows.append(("wall time", f"{info.wall_seconds:.1f} s (start-up {info.setup_seconds:.1f} s)"))
+    if info.setup_parts:
+        text = ", ".join(f"{phase} {s:.1f}" for phase, s in info.setup_parts.items())
+        if _is_number(m.get("seconds_unstaged")):  # checkpoints, Lightning's loop
+            text += f"; in training outside the stages {m['seconds_unstaged']:.1f}"
+        rows.append(("start-up (s)", text))
     if _seconds(m):
         rows.append(("stages (s)", _seconds(m)))
     if _gaussians(m):
