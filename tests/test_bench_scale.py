@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 from trial_helpers import ROOT
-STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune"]
+STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune", "checkpoint"]
 
 
 def test_bench_scale_quick_writes_json_and_table(tmp_path):
@@ -20,6 +20,9 @@ def test_bench_scale_quick_writes_json_and_table(tmp_path):
         for n, entry in by_n.items():
             assert entry["seconds"] > 0 and entry["cpu_seconds"] >= 0, (stage, n, entry)
             assert isinstance(entry["peak_bytes"], int) and entry["peak_bytes"] >= 0, (stage, n, entry)
+    # the checkpoint's file: the scene's parameters (59 floats a row) and the moments of the 5% trained
+    ckpt = results["checkpoint"]["30000"]["file_bytes"]
+    assert 59 * 4 * 30_000 < ckpt < 1.3 * 59 * 4 * 30_000, ckpt
     # the table: one row per stage with a growth exponent between the two sizes
     assert "exp 10k→30k" in proc.stdout
     for stage in STAGES:

@@ -423,3 +423,37 @@ def test_save_atomic_on_a_full_disk(tmp_path, monkeypatch):
         save_atomic({"state_dict": {}}, path)
     monkeypatch.undo()
     assert torch.equal(load_checkpoint_file(path)["state_dict"]["x"], torch.ones(3))  # the first, intact
+
+
+def test_checkpoints_keep_only_the_optimizer_rows_an_edit_trained(tmp_path):
+    """Adam's moments are zero for every row a regional edit does not train: the checkpoint file
+    holds the rows that are not (a fraction of its dense size), Lightning's load gets the same
+    dense state back bit for bit, and the live optimizer is untouched by the save."""
+    from gs_regional.launch.checkpoints import TrialCheckpointIO
+
+    rows = torch.nn.Parameter(torch.randn(20_000, 16))
+    scalar = torch.nn.Parameter(torch.randn(()))  # 0-d state stays as it is
+    opt = torch.optim.Adam([rows, scalar], lr=0.1)
+    for _ in range(3):
+        opt.zero_grad()
+        loss = (rows[100:140] ** 2).sum() + (rows[7] * 0.0).sum() + scalar ** 2  # row 7: a zero gradient
+        loss.backward()
+        opt.step()
+    live = {k: v.clone() for k, v in opt.state[rows].items()}
+    checkpoint = {"state_dict": {"rows": rows.detach()}, "optimizer_states": [opt.state_dict()]}
+    io, packed, dense = TrialCheckpointIO(), tmp_path / "packed.ckpt", tmp_path / "dense.ckpt"
+    io.save_checkpoint(checkpoint, packed)
+    save_atomic(checkpoint, dense)
+    assert os.path.getsize(packed) < 0.6 * os.path.getsize(dense)  # the moments were 2/3 of the file
+    assert all(torch.equal(opt.state[rows][k], v) for k, v in live.items())  # the save copied, not changed
+
+    loaded = io.load_checkpoint(packed)
+    again = torch.optim.Adam([torch.nn.Parameter(rows.detach().clone()), torch.nn.Parameter(scalar.detach().clone())], lr=0.1)
+    again.load_state_dict(loaded["optimizer_states"][0])
+    restored = again.state_dict()["state"]
+    for pid, state in opt.state_dict()["state"].items():
+        for k, v in state.items():
+            assert torch.equal(restored[pid][k], v), (pid, k)
+    assert int((restored[0]["exp_avg_sq"] != 0).any(1).sum()) == 40  # rows 100-139 (row 7's stays 0)
+    # A checkpoint written before packing (dense moments) loads as it was.
+    assert torch.equal(io.load_checkpoint(dense)["optimizer_states"][0]["state"][0]["exp_avg"], live["exp_avg"])

@@ -22,6 +22,10 @@ number on a machine shared with other work. Stages:
                  Adam state
   densify_prune  one DensifyStrategy.densify_and_prune step over the whole scene (about 2% cloned
                  or split, 1% pruned)
+  checkpoint     a training checkpoint as launch.py writes it (TrialCheckpointIO: atomic, fsynced,
+                 the optimizer state packed to its non-zero rows) of the scene and its Adam state
+                 after a step that trained 5% of the rows, as a regional edit trains its region;
+                 also its file_bytes
 
 Every (stage, N) runs in a fresh child process: its peak memory is the growth of the process's
 resident set (VmHWM, reset through /proc/self/clear_refs just before the stage) over what the
@@ -56,7 +60,7 @@ from gs_regional.registry import find
 from gs_regional.sim.scene import look_at
 from gs_regional.systems.regional_edit import LocalizeConfig
 
-STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune"]
+STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune", "checkpoint"]
 DEFAULT_SIZES = [10_000, 100_000, 1_000_000]
 QUICK_SIZES = [10_000, 30_000]
 SCENE_EXTENT = 1.6  # radius of the synthetic scene around the origin
@@ -242,6 +246,18 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
 
             def run():
                 strategy.densify_and_prune(model, SCENE_EXTENT, opt, generator=gen)
+    elif stage == "checkpoint":
+        from gs_regional.launch.checkpoints import TrialCheckpointIO
+
+        opt = torch.optim.Adam(model.optimizer_param_groups(spatial_scale=SCENE_EXTENT))
+        trained = (torch.rand(n, generator=gen) < 0.05).to(device)
+        for p in model.parameters():
+            p.grad = torch.zeros_like(p)
+            p.grad[trained] = 1e-3
+        opt.step()
+        checkpoint = {"state_dict": model.state_dict(), "optimizer_states": [opt.state_dict()]}
+        path = os.path.join(workdir, f"last_{n}.ckpt")
+        run = lambda: TrialCheckpointIO().save_checkpoint(checkpoint, path)  # noqa: E731
     else:
         raise ValueError(f"unknown stage {stage!r}; stages: {STAGES}")
 
@@ -250,7 +266,10 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
         run()
         sync()
         seconds, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
-    return {"seconds": round(seconds, 4), "peak_bytes": int(mem.peak), "cpu_seconds": round(cpu, 3)}
+    result = {"seconds": round(seconds, 4), "peak_bytes": int(mem.peak), "cpu_seconds": round(cpu, 3)}
+    if stage == "checkpoint":
+        result["file_bytes"] = os.path.getsize(path)
+    return result
 
 
 def _cpu_seconds() -> float:
