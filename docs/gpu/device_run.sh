@@ -1,10 +1,16 @@
 #!/bin/bash
-# Device run of 2026-11-30 (one call, run from the repository root with .gpu carried: .gpu/wheels holds
-# diffusers, omegaconf, plyfile, gsplat and importlib_metadata wheels, .gpu/data a copy of ../shared/data).
-# In order of what matters most if the call is cut short: the priors and the IP2P step (while gsplat's
-# CUDA kernels build in the background), the paper's budget at 100k and 1M Gaussians stage by stage, the
-# CUDA tests, gsplat against the torch rasterizer and the donut edit, the demo on the GPU, and the
-# localization at 1M Gaussians (bench_scale). Everything lands in $OUT.
+# The GPU checks of a session lent a device machine, as one call from the repository root (ran as it
+# stood at f6aa665 on an H200 on 2026-11-30: docs/results.md). Before the call, on this machine:
+#   echo /.gpu/ >> .git/info/exclude; mkdir -p .gpu/wheels .gpu/data; cp -r ../shared/data/* .gpu/data/
+#   python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 -d .gpu/wheels diffusers==0.42.1 omegaconf==2.4.0 plyfile==1.1.5 \
+#     gsplat==1.5.3 importlib_metadata
+# then run `bash docs/gpu/device_run.sh` with carry [".gpu"] and a timeout of about 590 s (it plans for
+# 500). In order of what matters most if the call is cut short: the priors and the IP2P step (while
+# gsplat's CUDA kernels build in the background, about 70 s), the paper's budget at 100k and 1M
+# Gaussians stage by stage with the start-up split, the CUDA tests (whole output kept), gsplat against
+# the torch rasterizer and the donut edit, the demo on the GPU, the 1M localization and checkpoint
+# (bench_scale). Everything lands in $OUT.
 exec > >(tee "$OUT/run.log") 2>&1
 t0=$(date +%s); el() { echo "=== [$(( $(date +%s) - t0 )) s] $*"; }
 left() { echo $(( 500 - ($(date +%s) - t0) )); }
@@ -34,7 +40,7 @@ timeout 300 python3 scripts/gpu_check.py --only paper_budget --budget 295 --out 
 cp /tmp/gc2/paper_budget.json $OUT/ 2>/dev/null
 
 el "CUDA tests"
-timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_device_and_batching.py tests/test_renderer.py::test_cuda_matches_cpu tests/test_auto_batch.py 2>&1 | tail -15 > $OUT/pytest_cuda.txt; tail -4 $OUT/pytest_cuda.txt
+timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_device_and_batching.py tests/test_renderer.py::test_cuda_matches_cpu tests/test_auto_batch.py > $OUT/pytest_cuda.txt 2>&1; tail -4 $OUT/pytest_cuda.txt
 
 if [ "$(left)" -gt 80 ]; then
   el "gpu_check gsplat_vs_torch donut_edit"
@@ -46,8 +52,8 @@ if [ "$(left)" -gt 45 ]; then
   cp "$(ls -d /tmp/demo_gpu/*/*/save | head -1)/metrics.json" $OUT/demo_gpu_metrics.json 2>/dev/null
 fi
 if [ "$(left)" -gt 30 ]; then
-  el "bench_scale localize at 1M on cuda"
-  timeout $(left) python3 scripts/bench_scale.py --sizes 1000000 --stages localize --device cuda --out /tmp/bs 2>&1 | tail -6
+  el "bench_scale localize and checkpoint at 1M on cuda"
+  timeout $(left) python3 scripts/bench_scale.py --sizes 1000000 --stages localize checkpoint --device cuda --out /tmp/bs 2>&1 | tail -6
 fi
 el "collecting"
 tar czf $OUT/reports.tgz --ignore-failed-read /tmp/gc1/*.json /tmp/gc2/*.json /tmp/gc3/*.json /tmp/gc*/logs/pytest.log \
