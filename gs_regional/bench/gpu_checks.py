@@ -25,9 +25,9 @@ and failed raises CheckFailed or returns its results with `_fail` (the reason).
   paper_budget     the paper's budget (pipeline.py BUDGETS["real-size"]: 3 cycles of 500 steps, m = 20,
                    24 localization views, 20 DDIM steps) with --fp16 at 512², the synthetic scene
                    resampled to 100,000 and to 1,000,000 Gaussians (no in2n, no load step): per run
-                   every stage, start-up split by phase, the UNet's seconds and share of the wall time, the views per
-                   UNet call batch_size auto chose, the wait for the priors, peak CUDA memory and RSS;
-                   written as paper_budget.json beside the table's JSON
+                   every stage, start-up split by phase, the UNet's seconds and share of the wall
+                   time, the views per UNet call batch_size auto chose, the wait for the priors, peak
+                   CUDA memory and RSS; written as paper_budget.json beside the table's JSON
   donut_edit       the donut (../shared/data/donut/donut.ply, or $GS_REGIONAL_DATA) edited end to end
                    with configs/donut_add.yaml through launch.main on the GPU, its simulated priors
                    replaced by the real-size random-weight IP2P and Depth Anything, at 512², renderer
@@ -418,7 +418,8 @@ def check_paper_budget(ctx: dict) -> dict:
         run = report["runs"]["regional-edit"]
         runs[_count_label(n)] = {
             "gaussians": report["scene"]["gaussians"], "wall_s": run["wall_seconds"], "startup_s": run["startup_seconds"],
-            "startup_parts_s": run["startup_parts"], "stages_s": run["seconds"], "stages_total_s": run["seconds_total"], "unet_evals": run["unet_evals"],
+            "startup_parts_s": run["startup_parts"], "stages_s": run["seconds"], "stages_total_s": run["seconds_total"],
+            "unet_evals": run["unet_evals"],
             "unet_s": run["unet_seconds"], "unet_share": run["unet_share"], "batch_size": run["batch_size"],
             "prior_wait_s": run["prior_wait_seconds"], "vae_encodes": run["vae_encodes"], "vae_decodes": run["vae_decodes"],
             "cuda_peak_gib": _gib(run["cuda_peak_bytes"]), "peak_rss_gib": _gib(run["peak_rss_bytes"]),

@@ -23,9 +23,10 @@ Steps, each in its own process (so that peak CPU RSS and peak CUDA memory are pe
 It writes DIR/bench_pipeline.json and prints a table: per-stage seconds (the names of the runs'
 metrics.json: localize, initialize, refine_edit, refine_train, ... ), start-up (the wall time the
 stages do not cover; a line per run splits it: plugins, scene, system, trainer, lightning, unstaged
-= checkpoints and Lightning's loop in training, process = interpreter, imports, exit), UNet evaluations, the UNet's seconds and share of the wall time, the views
-per UNet call the guidance chose (batch_size auto), VAE encodes/decodes, peak CPU RSS and peak
-CUDA memory, with the device named. --no-load skips the load step.
+= checkpoints and Lightning's loop in training, process = interpreter, imports, exit), UNet
+evaluations, the UNet's seconds and share of the wall time, the views per UNet call the guidance
+chose (batch_size auto), VAE encodes/decodes, peak CPU RSS and peak CUDA memory, with the device
+named. --no-load skips the load step.
 """
 from __future__ import annotations
 

@@ -17,13 +17,13 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 
 from gs_regional.config import ConfigError, load_config, unknown_key_message
+from gs_regional.launch.callbacks import FitStartClock, TrialCheckpoint, progress_callback
 from gs_regional.launch.checkpoints import CONFIG_KEY, TrialCheckpointIO, check_resume_config, load_checkpoint_file
 from gs_regional.launch.errors import is_user_error
 from gs_regional.launch.logs import LIGHTNING_LOGGERS, filter_warnings
 from gs_regional.launch.modes import STAGES, run_mode
 from gs_regional.launch.plugins import default_custom_dir, load_plugins
 from gs_regional.launch.sections import section_configs
-from gs_regional.launch.callbacks import FitStartClock
 from gs_regional.launch.summary import RunInfo, print_summary, read_metrics
 from gs_regional.launch.trial import TrialLock, check_writable, now_timestamp, removed_if_start_fails, trial_dir_for, write_trial_files
 from gs_regional.registry import find, load_builtins
@@ -120,8 +120,6 @@ def data_parallel_kwargs(kw: Dict[str, Any], system: Any, mode: str, scene: Any)
 
 
 def checkpoint_callback(cfg: Any, trial: Path):
-    from gs_regional.launch.callbacks import TrialCheckpoint
-
     ck = checkpoint_settings(cfg)
     ck.setdefault("save_last", True)
     ck.setdefault("save_top_k", 0)  # only last.ckpt unless asked for more
@@ -284,8 +282,6 @@ def run_config(cfg: Any) -> Dict[str, Any]:
 
 
 def _make_trainer(cfg: Any, kw: Dict[str, Any], trial: Path, reused: bool, extra: Sequence[Any] = ()) -> "lightning.Trainer":
-    from gs_regional.launch.callbacks import progress_callback
-
     callbacks = [progress_callback()] if kw.get("enable_progress_bar", True) else []
     callbacks += list(extra)
     if kw.get("enable_checkpointing", True):
