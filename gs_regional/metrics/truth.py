@@ -115,7 +115,7 @@ class TruthScoring:
 
         for i in views:
             cam = self.camera(i)
-            seen = self.renderer.pixel_weights(source, cam).gather(torch.ones(cam.height, cam.width, device=d))
+            seen = self.renderer.pixel_weights(source, cam).totals(cam.height, cam.width, d)
             left += seen * (colour(model, cam) - colour(true, cam)).pow(2).sum(-1) * region
             before += seen * (colour(source, cam) - colour(true, cam)).pow(2).sum(-1) * region
         total, before = float(left.sum()), float(before.sum())

@@ -95,6 +95,11 @@ class PixelWeights:
     def gather(self, image: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    def totals(self, height: int, width: int, device=None) -> torch.Tensor:
+        """(N,) each Gaussian's weight summed over every pixel of the view: how much of it the view
+        shows, in pixels (`gather` of an all-ones image)."""
+        return self.gather(torch.ones(height, width, device=device))
+
 
 class RenderedPixelWeights(PixelWeights):
     """Any renderer: `splat` renders with `override_color`; `gather` is the gradient of

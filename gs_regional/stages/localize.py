@@ -142,7 +142,7 @@ def mask_votes(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor]) -> 
     """Per-view votes (V, N) of every Gaussian: numerator Σ_x w_i(v,x)·M_v(x) and denominator
     Σ_x w_i(v,x), where w_i is the Gaussian's alpha-compositing weight."""
     num = torch.stack([v.gather(m.float()) for v, m in zip(views, masks)])
-    den = torch.stack([v.gather(torch.ones(m.shape, device=m.device)) for v, m in zip(views, masks)])
+    den = torch.stack([v.totals(*m.shape, m.device) for v, m in zip(views, masks)])
     return num, den
 
 
@@ -248,9 +248,9 @@ def localize_gaussians(
         if neighbourhood is not None:
             s_num, s_den = knn_pool(s_num, s_den, neighbourhood)
         scores = torch.where(s_den > 1e-8, s_num / s_den.clamp_min(1e-8), torch.zeros_like(s_num))
-        if evidence_prior > 0 and bool((scores > threshold).any()):
-            prior = evidence_prior * float(s_den[scores > threshold].median())
-            scores = s_num / (s_den + prior)
+        without_prior = scores > threshold
+        if evidence_prior > 0 and bool(without_prior.any()):
+            scores = s_num / (s_den + evidence_prior * float(s_den[without_prior].median()))
         selected = scores > threshold
         if it < reweight_iters and bool(selected.any()):
             weights = mask_agreement(views, masks, selected) ** agreement_power

@@ -18,7 +18,7 @@ def rendered_weight(model, renderer, cameras: Sequence[Camera]) -> torch.Tensor:
     pixels: 1 = one pixel's full colour). One view at a time, so memory stays O(N)."""
     total = torch.zeros(model.num_gaussians, device=model.means.device)
     for cam in cameras:
-        total += renderer.pixel_weights(model, cam).gather(torch.ones(cam.height, cam.width, device=total.device))
+        total += renderer.pixel_weights(model, cam).totals(cam.height, cam.width, total.device)
     return total
 
 

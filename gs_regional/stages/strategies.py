@@ -278,7 +278,7 @@ def colour_step(geometry, rows_: torch.Tensor, views: List[Any], targets: torch.
     den = torch.zeros(geometry.num_gaussians, device=geometry.means.device)
     for view, target, render in zip(views, targets, renders):
         num += view.gather(target.to(render) - render.detach())
-        den += view.gather(torch.ones(render.shape[:-1], device=render.device))
+        den += view.totals(*render.shape[:-1], render.device)
     step = rows_ & (den >= SEEN_MIN_WEIGHT)
     geometry.sh_dc.data[step] += num[step] / den[step, None] / SH_C0
 
@@ -312,7 +312,7 @@ class Recolour(EditStrategy):
             for v in spread_subset(system.scene.train_indices, UNEDITED_CANDIDATES):
                 cam = system.scene.cameras[v].to(system.device)
                 view = system.renderer.pixel_weights(g, cam)
-                best = torch.maximum(best, view.gather(torch.ones(cam.height, cam.width, device=system.device)))
+                best = torch.maximum(best, view.totals(cam.height, cam.width, system.device))
             self.best_weights = best
         return seen < (WELL_SEEN * self.best_weights).clamp_min(SEEN_MIN_WEIGHT)
 
@@ -380,7 +380,7 @@ class Recolour(EditStrategy):
         for k, (j, view) in enumerate(zip(s.cycle_views, weights)):
             blend = edit_blend(s.cycle_targets[k], system.source_renders[j]).clamp(0, 1)
             self.blend_votes[0] += view.gather(blend)
-            self.blend_votes[1] += view.gather(torch.ones_like(blend))
+            self.blend_votes[1] += view.totals(*blend.shape, blend.device)
             blends.append(blend)
         s.cycle_weights = RECOLOURED_PIXEL_FLOOR + torch.stack(blends)  # the cycle trains on what its views recolour
         num, den = self.blend_votes
