@@ -715,7 +715,7 @@ def test_a_recolours_later_cycle_goes_to_a_large_unseen_share_of_the_part_even_w
     the low ring (1 and 4) leaves about half of its Gaussians unseen (its back and sides); they
     cover at most about 3 % of any view, under UNEDITED_MIN_AREA, but being UNEDITED_MIN_SHARE of
     the selection the next cycle goes there (counting, as before WELL_SEEN, only the Gaussians
-    never seen)."""
+    never seen); not when only the body's inside, which no camera sees, makes them that share."""
     from gs_regional.sim.scene import part_masks
     from gs_regional.stages import strategies
     from gs_regional.stages.localize import SEEN_MIN_WEIGHT
@@ -735,6 +735,15 @@ def test_a_recolours_later_cycle_goes_to_a_large_unseen_share_of_the_part_even_w
     # it starts where the unseen part covers the most, and its views see a good part of it
     assert frontal == areas.index(most) and near[0] == strategies.nearest_cameras(cams, frontal, 1, range(12))[0]
     assert float((sum(weights[v] for v in [frontal, near[0]])[unseen] >= SEEN_MIN_WEIGHT).float().mean()) > 0.3
+    # The body's inside, which no camera sees (a fifth of the body), is no side a cycle could edit
+    # and does not count toward the share: at a share between the part's seeable Gaussians' and
+    # all of its Gaussians', the schedule's views come back.
+    seeable = strategy.best_weights >= SEEN_MIN_WEIGHT
+    share_seeable = float((unseen & seeable).sum()) / float((body & seeable).sum())
+    share_all = float(unseen.sum()) / float(body.sum())
+    assert share_seeable + 0.05 < share_all
+    monkeypatch.setattr(strategies, "UNEDITED_MIN_SHARE", (share_seeable + share_all) / 2)
+    assert strategy.cycle_views(system, 1, 2, [1, 3, 0]) == (2, [1, 3, 0])
 
 
 def test_a_recolours_later_cycle_goes_to_a_side_the_edited_views_saw_only_edge_on():

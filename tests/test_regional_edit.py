@@ -20,7 +20,7 @@ from gs_regional.stages.localize import (
 )
 from gs_regional.stages.views import spread_subset
 from gs_regional.launch import main
-from gs_regional.metrics.region import mask_metrics
+from gs_regional.metrics.region import SEEN_MIN_WEIGHT, mask_metrics
 from gs_regional.registry import find
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.stages.localize import LocalizeConfig
@@ -57,8 +57,11 @@ def simulated_masks(edit, n_cameras, size, max_views, editor_seed=0):
     return gt, renderer, vc, images, masks, lc
 
 
-def body_count(selected, gt):
-    return int((selected & gt.related).sum())
+def body_count(selected, gt, lifted=None):
+    """The body's Gaussians in `selected`; with a lift's result, only those its views see (the
+    seam the edge test is about; the body's inside takes its neighbours' scores)."""
+    seen = torch.ones_like(selected) if lifted is None else lifted["seen"] >= SEEN_MIN_WEIGHT
+    return int((selected & gt.related & seen).sum())
 
 
 def test_localization_recovers_the_true_region():
@@ -77,12 +80,13 @@ def test_localization_recovers_the_true_region():
         m = mask_metrics(robust["selected"], gt.region)
         m_plain = mask_metrics(plain_edges["selected"], gt.region)
         print(f"draw {editor_seed}: robust lift {m}, without the edge test {m_plain}, body "
-              f"{body_count(robust['selected'], gt)} vs {body_count(plain_edges['selected'], gt)}")
+              f"{body_count(robust['selected'], gt)} vs {body_count(plain_edges['selected'], gt)} (seen: "
+              f"{body_count(robust['selected'], gt, robust)} vs {body_count(plain_edges['selected'], gt, robust)})")
         ious.append(m["mask_iou"])
         gains.append(m["mask_iou"] - m_plain["mask_iou"])
         # The test drops most of the body's seam and next to none of the head.
         assert m["mask_recall"] >= m_plain["mask_recall"] - 0.01
-        assert body_count(robust["selected"], gt) * 3 <= body_count(plain_edges["selected"], gt)
+        assert body_count(robust["selected"], gt, robust) * 3 <= body_count(plain_edges["selected"], gt, robust)
         # The side views the editor misses are the ones the reweighting discounts.
         w = robust["view_weights"]
         assert float(w.min()) < 0.2 and float(w.max()) > 0.5
@@ -173,6 +177,38 @@ def test_a_gaussian_the_views_barely_see_is_not_selected_on_the_little_it_shows(
     faint = w.clone()
     faint[:4] *= 0.005
     assert selected(faint, EVIDENCE_PRIOR) == [True] * 5 + [False]
+
+
+def test_gaussians_no_view_sees_take_their_neighbours_scores():
+    """A part's inside shows the views nothing, and a pooled vote over neighbours that no view
+    sees either is empty: those Gaussians take, layer by layer inward, the scores of their
+    neighbours that have one. Two views of a region (the masks' 6x6 square): four of its Gaussians
+    seen inside the masks, two seen outside. A chain of unseen ones under the region (6 -> 7 -> 8)
+    is selected to its end; one under the outside (9 -> 10) is not; a pair no chain reaches from a
+    seen Gaussian (11, 12) keeps its own score (0). The paper's plain vote (no pooling) fills nothing."""
+    masks = [torch.zeros(12, 12) for _ in range(2)]
+    for m in masks:
+        m[2:8, 2:8] = 1
+    w = torch.zeros(13, 12, 12)
+    for i in range(4):  # the region's Gaussians, inside
+        w[i, 2 + i, 2:6] = 0.5
+    w[4, 9, 2:6] = w[5, 10, 2:6] = 0.5  # outside
+    # each row: itself, then its neighbours (padded with itself, which adds nothing unseen)
+    neighbourhood = torch.tensor([
+        [0, 1, 2, 3], [1, 0, 2, 3], [2, 1, 3, 0], [3, 2, 1, 0], [4, 5, 9, 4], [5, 4, 9, 5],
+        [6, 0, 7, 6], [7, 6, 8, 7], [8, 7, 8, 8],  # under the region: 6 touches 0, 8 only 7
+        [9, 4, 10, 9], [10, 9, 10, 10],  # under the outside
+        [11, 12, 11, 11], [12, 11, 12, 12],  # reached by no chain
+    ])
+    views = [MatrixWeights(w)] * 2
+
+    def selected(pooled):
+        return localize_gaussians(None, None, [None, None], masks, threshold=0.5, reweight_iters=0,
+                                  evidence_prior=EVIDENCE_PRIOR, reuse={"views": views, "neighbourhood": pooled}
+                                  )["selected"].tolist()
+
+    assert selected(neighbourhood) == [True] * 4 + [False] * 2 + [True] * 3 + [False] * 4
+    assert selected(None) == [True] * 4 + [False] * 9  # no pooling: the unseen score 0
 
 
 def test_regional_edit_outputs_and_fidelity_against_in2n(runs):

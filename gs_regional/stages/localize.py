@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from gs_regional.config import need
 from gs_regional.data.cameras import Camera
 from gs_regional.geometry import neighbors
-from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection, splat_selection  # noqa: F401 (part of this stage's API)
+from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection, splat_selection  # noqa: F401 (render_selection, splat_selection: part of this stage's API)
 from gs_regional.renderers.base import PixelWeights
 from gs_regional.utils.image import dilate, gaussian_blur
 from gs_regional.utils.sh import sh_to_color
@@ -199,6 +199,34 @@ def knn_pool(num: torch.Tensor, den: torch.Tensor, neighbourhood: torch.Tensor) 
     return num[neighbourhood].sum(1), den[neighbourhood].sum(1)
 
 
+def fill_unseen_scores(scores: torch.Tensor, seen: torch.Tensor, neighbourhood: torch.Tensor) -> torch.Tensor:
+    """(N,) `scores` with those of the Gaussians no view sees (`seen` < SEEN_MIN_WEIGHT pixels)
+    replaced, layer by layer inward, by the mean score of their neighbours (rows of
+    `neighbourhoods`) that have one: the seen ones, then those filled in an earlier layer.
+
+    Why: a part's inside and its hidden side show the views nothing, and their pooled vote is
+    mostly the evidence prior's, so they were left out (a whole part's recall 0.8: IoU counts every
+    Gaussian). No view contradicts them either: the nearest evidence is their neighbours'. Each
+    layer works on the rows still open (linear in N); one that no chain of neighbours reaches from
+    a seen Gaussian keeps its own score."""
+    open_rows = (seen < SEEN_MIN_WEIGHT).nonzero().squeeze(1)
+    if open_rows.numel() == 0:
+        return scores
+    scores, known = scores.clone(), seen >= SEEN_MIN_WEIGHT
+    rows = neighbourhood[open_rows, 1:]  # not itself
+    while open_rows.numel():
+        labelled = known[rows].to(scores.dtype)
+        count = labelled.sum(1)
+        reached = count > 0
+        if not bool(reached.any()):
+            break
+        mean = (labelled * scores[rows]).sum(1) / count.clamp_min(1)
+        scores[open_rows[reached]] = mean[reached]
+        known[open_rows[reached]] = True
+        open_rows, rows = open_rows[~reached], rows[~reached]
+    return scores
+
+
 def localize_gaussians(
     model, renderer, cameras: Sequence[Camera], masks: Sequence[torch.Tensor], threshold: float = 0.5,
     reweight_iters: int = REWEIGHT_ITERS, agreement_power: float = AGREEMENT_POWER, knn: int = 16,
@@ -220,6 +248,8 @@ def localize_gaussians(
     * evidence prior (`evidence_prior` > 0, EVIDENCE_PRIOR): each pooled vote also counts that
       fraction of the median pooled weight of the Gaussians selected without it as weight outside
       the masks, so one that shows the views next to nothing is not selected; 0 changes nothing.
+    * with neighbour pooling, the Gaussians no view sees take their neighbours' scores
+      (`fill_unseen_scores`).
     `reuse`: the result of an earlier lift of the same geometry from the same cameras with the same
     `knn`: its pixel weights and neighbourhoods are taken as they are (no new renders, no new search).
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
@@ -256,6 +286,9 @@ def localize_gaussians(
             weights = mask_agreement(views, masks, selected) ** agreement_power
             if float(weights.sum()) <= 0:
                 break
+    if neighbourhood is not None:  # unseen Gaussians render nothing: the view weights above stand
+        scores = fill_unseen_scores(scores, den.sum(0), neighbourhood)
+        selected = scores > threshold
     return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": den.sum(0),
             "neighbourhood": neighbourhood}
 

@@ -75,9 +75,10 @@ STILL_DISTINCT = 0.5
 # this fraction of its pixels: a part seen from every side (a donut's dough) was otherwise edited
 # from one side only. Below it (a thin part's hidden side, seen edge-on) the edit's jitter there
 # spills onto the neighbours more than it adds. When the unseen Gaussians are at least
-# UNEDITED_MIN_SHARE of the selection (a body seen from the front, its back and sides left at their
-# source colours: half of the part's error), a view they cover UNEDITED_MIN_SHARE_AREA of is
-# enough: the side they make up matters more than another cycle on the sides already edited.
+# UNEDITED_MIN_SHARE of the selected ones a training view sees (a body seen from the front, its
+# back and sides left at their source colours: half of the part's error), a view they cover
+# UNEDITED_MIN_SHARE_AREA of is enough: the side they make up matters more than another cycle on
+# the sides already edited.
 UNEDITED_MIN_AREA = 0.04
 UNEDITED_MIN_SHARE = 0.3
 UNEDITED_MIN_SHARE_AREA = 0.01
@@ -329,6 +330,9 @@ class Recolour(EditStrategy):
         g, scene = system.geometry, system.scene
         selected = rows.of_source(g, system.state.source_selection)
         unseen = selected & self.poorly_seen(system, self.blend_votes[1])
+        # What no training view sees (a part's inside) no cycle can edit: it counts neither way.
+        seeable = self.best_weights >= SEEN_MIN_WEIGHT
+        selected, unseen = selected & seeable, unseen & seeable
         if not bool(unseen.any()):
             return frontal, near
         share = int(unseen.sum()) / int(selected.sum())
