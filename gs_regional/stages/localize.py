@@ -286,10 +286,11 @@ def localize_gaussians(
             weights = mask_agreement(views, masks, selected) ** agreement_power
             if float(weights.sum()) <= 0:
                 break
+    seen = den.sum(0)
     if neighbourhood is not None:  # unseen Gaussians render nothing: the view weights above stand
-        scores = fill_unseen_scores(scores, den.sum(0), neighbourhood)
+        scores = fill_unseen_scores(scores, seen, neighbourhood)
         selected = scores > threshold
-    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": den.sum(0),
+    return {"selected": selected, "scores": scores, "view_weights": weights, "views": views, "seen": seen,
             "neighbourhood": neighbourhood}
 
 

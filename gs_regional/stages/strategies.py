@@ -386,15 +386,14 @@ class Recolour(EditStrategy):
             return
         g, s = system.geometry, system.state
         weights = [system.renderer.pixel_weights(g, system.scene.cameras[j].to(system.device)) for j in s.cycle_views]
-        seen_before = None if self.blend_votes is None else self.blend_votes[1].clone()  # by the earlier cycles' views
         blends, votes = [], torch.zeros(2, g.num_gaussians, device=system.device)
         for k, (j, view) in enumerate(zip(s.cycle_views, weights)):
             blend = edit_blend(s.cycle_targets[k], system.source_renders[j]).clamp(0, 1)
             votes += torch.stack([view.gather(blend), view.totals(*blend.shape, blend.device)])
             blends.append(blend)
+        fresh = self.blend_votes is None or self.blend_votes.shape != votes.shape
+        seen_before = torch.zeros_like(votes[1]) if fresh else self.blend_votes[1].clone()  # by the earlier cycles' views
         self.add_cycle_votes(votes)
-        if seen_before is None or seen_before.shape != votes.shape[1:]:
-            seen_before = torch.zeros_like(votes[1])
         s.cycle_weights = RECOLOURED_PIXEL_FLOOR + torch.stack(blends)  # the cycle trains on what its views recolour
         num, den = self.recent_votes
         src = g.source_index
