@@ -75,18 +75,21 @@ def test_targets_name_the_cases_that_miss_them():
                 "true_added": 100, "region_gaussians": 1000}
 
     result = {name: (met, bad) for name, met, _, bad in report.targets([
-        rec(1, "recolor_small", 12.0, 55.0), rec(2, "add_small", -1.0, 44.0, added=300),
-        rec(3, "recolor_large", 11.0, 52.0, stopped="view_agreement", added=50)])}
+        rec(1, "recolor_small", 13.0, 56.0), rec(2, "add_small", -1.0, 44.0, added=300),
+        rec(3, "recolor_large", 11.0, 55.0, stopped="view_agreement", added=50), rec(4, "add_large", 3.0, 58.0, added=90)])}
     assert result["gain > 0 dB, every case"] == (False, ["c2"])
-    assert result["median gain >= +6 dB"] == (True, [])
-    assert result["median gain of the recolours >= +10 dB"] == (True, [])
+    assert result["gain >= +4 dB, every case"] == (False, ["c2", "c4"])
+    assert result["median gain >= +8 dB"] == (False, [])  # median of -1, 3, 11, 13: 7
+    assert result["median gain of the additions >= +8 dB"] == (False, [])
+    assert result["median gain of the recolours >= +12 dB"] == (True, [])  # 11 and 13: 12
     assert result["outside-footprint PSNR >= 45 dB, every case"] == (False, ["c2"])
-    assert result["median outside-footprint PSNR >= 50 dB"] == (True, [])
+    assert result["median outside-footprint PSNR >= 55 dB"] == (True, [])
     assert result["no stopped run"] == (False, ["c3"])
     assert result["Gaussians added <= 2x the truth's (a recolour: < 1 % of its region)"] == (False, ["c2", "c3"])
     # a run of the additions alone has no recolour to hold the recolours' target to
-    only_adds = {name: met for name, met, _, _ in report.targets([rec(2, "add_small", 7.0, 50.0, added=100)])}
-    assert only_adds["median gain of the recolours >= +10 dB"] is None and only_adds["median gain >= +6 dB"] is True
+    only_adds = {name: met for name, met, _, _ in report.targets([rec(2, "add_small", 9.0, 56.0, added=100)])}
+    assert only_adds["median gain of the recolours >= +12 dB"] is None and only_adds["median gain >= +8 dB"] is True
+    assert only_adds["median gain of the additions >= +8 dB"] is True
 
 
 def test_quick_run_writes_records_and_chart(tmp_path, capsys):
