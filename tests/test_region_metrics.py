@@ -66,6 +66,25 @@ def test_region_scores_against_the_true_edit_and_doing_nothing(views):
     assert none["psnr_outside_vs_true_edit"] == pytest.approx(_db(1e-4), abs=1e-2)
 
 
+
+def test_region_scores_tell_an_edge_a_pixel_off_from_an_edit_leaking_into_the_scene(views):
+    source, truth, _, inside = views
+    # the white square drawn a pixel wider on its right: all the error outside lies next to the footprint
+    wider = truth.clone()
+    wider[0, 4:8, 8] = 1.0
+    s = region_scores(wider, source, truth, inside)
+    assert s["outside_error_near_footprint"] == pytest.approx(1.0)
+    assert s["psnr_far_outside_vs_true_edit"] >= 100  # identical beyond NEAR_FOOTPRINT_PX
+    # the same error 6 px away from it: the edit leaked into the scene
+    leaked = truth.clone()
+    leaked[0, 4:8, 14] = 1.0
+    far = region_scores(leaked, source, truth, inside)
+    assert far["outside_error_near_footprint"] == pytest.approx(0.0)
+    assert far["psnr_outside_vs_true_edit"] == pytest.approx(s["psnr_outside_vs_true_edit"], abs=1e-3)
+    assert far["psnr_far_outside_vs_true_edit"] < s["psnr_outside_vs_true_edit"]
+    # nothing wrong outside: no share to give
+    assert region_scores(truth, source, truth, inside)["outside_error_near_footprint"] is None
+
 def test_unedited_scores_split_silhouette_from_background():
     """A halo: the result differs from the source on the object's edge, not on the black
     background; the whole-image PSNR hides it, the silhouette PSNR does not."""

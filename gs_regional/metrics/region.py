@@ -7,7 +7,9 @@ A score over an empty set of pixels is None, never NaN or an infinite PSNR.
   footprint     pixels the true edit is about: the rendered weight of the true region (and of
                 the Gaussians the edit adds) above a threshold.
   inside/outside the footprint: the result against the true edit, and the same for doing nothing
-                (the source renders against the true edit), so every number has its baseline.
+                (the source renders against the true edit), so every number has its baseline;
+                outside split into the pixels within NEAR_FOOTPRINT_PX of the footprint (an edge
+                a pixel off) and those beyond (the edit leaking into the scene).
   silhouette/background: the unedited pixels split by where the source renders opaque, so that a
                 black background cannot hide a halo of changes around the object.
 """
@@ -18,9 +20,14 @@ from typing import Dict, Optional
 import torch
 
 from gs_regional.metrics.image import psnr, ssim
+from gs_regional.utils.image import dilate
 
 
 SEEN_MIN_WEIGHT = 0.01  # pixels of rendering weight over a set of views: a Gaussian they see
+# region_scores splits the error outside the footprint at this distance from it (pixels): nearer,
+# an edge a pixel off (the footprint is where the true edit's weight passes 0.1, and objects and
+# parts are anti-aliased over a pixel or two); further, the edit leaking into the scene.
+NEAR_FOOTPRINT_PX = 2
 
 
 @torch.no_grad()
@@ -66,13 +73,22 @@ def masked_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> Optiona
 
 def region_scores(result: torch.Tensor, source: torch.Tensor, truth: torch.Tensor, inside: torch.Tensor) -> Dict[str, Optional[float]]:
     """PSNR and SSIM of the result and of doing nothing (`source`) against the true edit, inside
-    the footprint `inside` and outside it."""
+    the footprint `inside` and outside it; and where the error outside lies: the PSNR of the
+    pixels more than NEAR_FOOTPRINT_PX from the footprint (`psnr_far_outside_vs_true_edit`: the
+    edit leaking into the rest of the scene) and the share of the outside's squared error within
+    that distance (`outside_error_near_footprint`: the edge of the edited part or object a pixel
+    off, its colour spilled onto the next pixel)."""
     _checked({"result": result, "source": source, "truth": truth}, inside)
     out: Dict[str, Optional[float]] = {}
+    near = dilate(inside, NEAR_FOOTPRINT_PX)
     for where, mask in (("region", inside), ("outside", ~inside)):
         for name, images in (("", result), ("_source", source)):
             out[f"psnr_{where}{name}_vs_true_edit"] = masked_psnr(images, truth, mask)
             out[f"ssim_{where}{name}_vs_true_edit"] = masked_ssim(images, truth, mask)
+    out["psnr_far_outside_vs_true_edit"] = masked_psnr(result, truth, ~near)
+    err = ((result - truth) ** 2).mean(-1)
+    total = float(err[~inside].sum())
+    out["outside_error_near_footprint"] = float(err[near & ~inside].sum()) / total if total > 0 else None
     return out
 
 

@@ -71,11 +71,12 @@ def gaussian_blur(maps: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 def dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
-    """Grow an (H, W) mask by `px` pixels (a square structuring element); returns bool."""
+    """Grow an (..., H, W) mask by `px` pixels (a square structuring element), each (H, W) on its
+    own; returns bool."""
     if px <= 0:
         return mask.bool()
-    m = mask.float()[None, None]
-    return (F.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[0, 0] > 0.5)
+    m = mask.float().reshape(-1, 1, *mask.shape[-2:])
+    return (F.max_pool2d(m, 2 * px + 1, stride=1, padding=px) > 0.5).reshape(mask.shape)
 
 
 def components(mask: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ from typing import Dict, List, Sequence, Tuple
 from gs_regional.bench import sweeps
 from gs_regional.bench.truth.cases import JSON_NAME, run_seed, spread
 from gs_regional.bench.truth.report import MET_WORDS, targets
+from gs_regional.metrics.region import NEAR_FOOTPRINT_PX
 
 def load_payload(path: str, option: str = "--compare") -> dict:
     """A suite's JSON, given as the file or the folder holding it (`option` names it in the error)."""
@@ -68,13 +69,16 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
     print("| --- | --- | --- |")
     for name, f in (("gain min / median (dB)", lambda rs: [r["gain"] for r in rs]),
                     ("outside min / median (dB)", lambda rs: [r["psnr_outside_vs_true_edit"] for r in rs]),
+                    ("outside, beyond its edge, min / median (dB)",
+                     lambda rs: [r.get("psnr_far_outside_vs_true_edit") for r in rs]),
                     ("UNet evaluations min / median", lambda rs: [r["unet_evals"] for r in rs])):
         cols = []
         for rs in ([b[i] for i in shared], [a[i] for i in shared]):
             vals = [v for v in f(rs) if v is not None]
             cols.append(f"{min(vals):.2f} / {statistics.median(vals):.2f}" if vals else "-")
         print(f"| {name} | " + " | ".join(cols) + " |")
-    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")):
+    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside"),
+                       ("psnr_far_outside_vs_true_edit", f"outside beyond {NEAR_FOOTPRINT_PX} px of the footprint")):
         d = paired_differences(b, a, shared, key)
         if d:
             print(f"paired runs (the same run seed at both, neither stopped), {label}: {len(d)} runs, better in "

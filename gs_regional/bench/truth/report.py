@@ -7,6 +7,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 from gs_regional.bench import sweeps
 from gs_regional.bench.truth.cases import KINDS, LOCALIZE_ONLY, PART_KINDS, gain, spread
+from gs_regional.metrics.region import NEAR_FOOTPRINT_PX
 
 def _ratio_added(r: dict) -> Optional[float]:
     if r.get("gaussians_added") is None:
@@ -99,6 +100,8 @@ DISTRIBUTION = (
     ("footprint PSNR vs truth (dB)", lambda r: r.get("psnr_region_vs_true_edit")),
     ("footprint PSNR doing nothing (dB)", lambda r: r.get("psnr_region_source_vs_true_edit")),
     ("outside-footprint PSNR (dB)", lambda r: r.get("psnr_outside_vs_true_edit")),
+    (f"outside it, over {NEAR_FOOTPRINT_PX} px from it (dB)", lambda r: r.get("psnr_far_outside_vs_true_edit")),
+    (f"outside error within {NEAR_FOOTPRINT_PX} px of it (share)", lambda r: r.get("outside_error_near_footprint")),
     ("unedited PSNR (dB)", lambda r: r.get("psnr_unedited")),
     ("mask IoU", lambda r: r.get("mask_iou")),
     ("mask IoU (seen)", lambda r: r.get("mask_iou_seen")),

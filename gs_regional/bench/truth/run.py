@@ -14,7 +14,8 @@ from gs_regional.bench.truth.cases import COMMON, JSON_NAME, METRIC_KEYS, draw, 
 from gs_regional.bench.truth.scenes import Subject, resolve, subjects_for
 
 # The figures a case with --repeats reports as the median over its runs (each run's own in `repeats`).
-REPEAT_KEYS = ("gain", "psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "psnr_vs_true_edit",
+REPEAT_KEYS = ("gain", "psnr_region_vs_true_edit", "psnr_outside_vs_true_edit", "psnr_far_outside_vs_true_edit",
+               "outside_error_near_footprint", "psnr_vs_true_edit",
                "psnr_unedited", "mask_iou", "mask_iou_seen", "gaussians_added", "source_deleted", "unet_evals",
                "seconds_total")
 REPEAT_SEED_STEP = 1  # run j of a case uses its run seed + j (run 0 is the draw's own run)
