@@ -66,6 +66,26 @@ def test_an_addition_adds_next_to_the_true_new_gaussians():
     assert float((distance < 0.2 * extent).float().mean()) >= 0.8
 
 
+def test_an_addition_places_about_as_many_gaussians_at_four_times_the_resolution():
+    gt, small, report_small = initialize("add", size=96)
+    _, large, report_large = initialize("add", size=384)
+    # 16x the pixels of changed depth, each 4 x 4 block of them one Gaussian (PLACEMENT_GRID_CELLS)
+    assert report_large["placed_pixels"] > 8 * report_small["placed_pixels"]
+    n_small, n_large = small["means"].shape[0], large["means"].shape[0]
+    assert 0.5 * n_small <= n_large <= 2 * n_small, (n_small, n_large)
+    # each stands for the pixels it merged: about 4x the size of a pixel's Gaussian at 384²
+    assert float(large["log_scales"].exp().median()) > 2 * float(small["log_scales"].exp().median()) * 96 / 384
+    new_means = gt.edited.means.detach()[len(gt.source):]
+    extent = float((new_means.max(0).values - new_means.min(0).values).norm())
+    distance = torch.cdist(large["means"], new_means).min(1).values
+    assert float(distance.median()) < 0.1 * extent  # still on the moustache
+
+
+def test_a_recolour_at_four_times_the_resolution_still_adds_no_geometry():
+    _, _, report = initialize("recolor", size=384)
+    assert report["placed_pixels"] <= 0.01 * report["region_pixels"] and report["added"] <= report["placed_pixels"]
+
+
 @pytest.mark.parametrize("corruption", [1.0, 3.0])
 def test_a_recolour_whose_region_fills_the_view_is_told_without_calibration(corruption):
     """A region that covers every rendered pixel leaves none to calibrate the monocular depth on.

@@ -655,7 +655,7 @@ def test_a_few_gaussians_of_changed_depth_beside_a_recoloured_part_leave_the_edi
                                                                                             placed, kind):
     """A monocular depth estimator answers a recoloured part's edge with a few pixels of changed
     depth. Taken as a change of shape, the edit became an addition, whose colours train at the
-    3DGS rate and ungated: the recolour came out half done. Under MIN_SHAPE_GAUSSIANS (5) Gaussians
+    3DGS rate and ungated: the recolour came out half done. Under MIN_SHAPE_PIXELS (5) Gaussians
     of changed depth beside a region the first edit recolours, they are removed and the edit is a
     recolour; from 5 on it is an addition. (The demo's head recolour, its depth made to answer
     with `placed` Gaussians on the head.)"""

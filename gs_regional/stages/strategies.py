@@ -94,12 +94,12 @@ WELL_SEEN = 1.0
 # the later ones), and counted as much as the later ones they declined 4 in 10 of the part.
 EARLIER_CYCLES_WEIGHT = 0.5
 
-# An edit whose depth shows a change of shape of fewer Gaussians than this while its first full edit
+# An edit whose depth shows a change of shape on fewer pixels than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
 # depth estimator answers a recoloured part's edge with a few pixels of changed depth. Trained as
 # an addition (colours at the 3DGS rate, ungated), such recolours came out half done
 # (docs/method.md, "Recolour or change of shape").
-MIN_SHAPE_GAUSSIANS = 5
+MIN_SHAPE_PIXELS = 5
 
 # Keys that became named constants: {key: (constant, module)}.
 _CONSTANTS = {
@@ -525,9 +525,9 @@ class Addition(EditStrategy):
 
 
 def is_recolour_edge(report: dict, refine: RefineConfig) -> bool:
-    """Is initialization's change of shape (`report`) only a recolour's edge (MIN_SHAPE_GAUSSIANS)?"""
+    """Is initialization's change of shape (`report`) only a recolour's edge (MIN_SHAPE_PIXELS)?"""
     fraction = report.get("recoloured_fraction")
-    return (0 < report.get("added", 0) < MIN_SHAPE_GAUSSIANS and fraction is not None
+    return (0 < report.get("placed_pixels", report.get("added", 0)) < MIN_SHAPE_PIXELS and fraction is not None
             and fraction >= refine.min_recoloured_fraction)
 
 
