@@ -86,7 +86,7 @@ def region_scores(result: torch.Tensor, source: torch.Tensor, truth: torch.Tenso
             out[f"psnr_{where}{name}_vs_true_edit"] = masked_psnr(images, truth, mask)
             out[f"ssim_{where}{name}_vs_true_edit"] = masked_ssim(images, truth, mask)
     out["psnr_far_outside_vs_true_edit"] = masked_psnr(result, truth, ~near)
-    err = ((result - truth) ** 2).mean(-1)
+    err = ((result - truth).double() ** 2).mean(-1)  # float64 sums: a share of 1 stays 1
     total = float(err[~inside].sum())
     out["outside_error_near_footprint"] = float(err[near & ~inside].sum()) / total if total > 0 else None
     return out
