@@ -46,7 +46,7 @@ class InitConfig:
     max_calibration_residual: float = 0.05
     # New Gaussians stand for at least `stride` x `stride` pixels each (`placement_cell`).
     stride: int = 1
-    max_new: int = 20000  # cap on the number of added Gaussians
+    max_new: int = 20000  # cap on the pixels unprojected (evenly subsampled), so on the Gaussians added
     opacity: float = 0.3  # initial opacity of added Gaussians ("modest": they must not hide the surface behind)
     scale_factor: float = 0.5  # Gaussian standard deviation in pixel footprints
     # New points farther than this from every selected Gaussian (as a fraction of the selection's
@@ -472,7 +472,7 @@ def merge_cells(pixels: torch.Tensor, means: torch.Tensor, colors: torch.Tensor,
     return mean(means), mean(colors), mean(depth), covered
 
 
-# A first view whose depth places Gaussians on at least this many pixels per pixel its edit changes (beyond
+# A first view whose depth places new Gaussians on at least this fraction of the pixels its edit changes (beyond
 # the editor's noise) shows the object well, and no other view's full edit is spent on it: on the
 # truth suite's additions (26164, 136818) a second view helped only where the first placed under
 # 0.37 per changed pixel (and 0.49 once, +0.5 dB), and took from where it placed more than one.
