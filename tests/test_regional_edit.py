@@ -655,7 +655,7 @@ def test_a_few_gaussians_of_changed_depth_beside_a_recoloured_part_leave_the_edi
                                                                                             placed, kind):
     """A monocular depth estimator answers a recoloured part's edge with a few pixels of changed
     depth. Taken as a change of shape, the edit became an addition, whose colours train at the
-    3DGS rate and ungated: the recolour came out half done. Under MIN_SHAPE_PIXELS (5) Gaussians
+    3DGS rate and ungated: the recolour came out half done. Under MIN_SHAPE_PIXELS (5) pixels
     of changed depth beside a region the first edit recolours, they are removed and the edit is a
     recolour; from 5 on it is an addition. (The demo's head recolour, its depth made to answer
     with `placed` Gaussians on the head.)"""
@@ -675,7 +675,8 @@ def test_a_few_gaussians_of_changed_depth_beside_a_recoloured_part_leave_the_edi
                   "sh_dc": rgb_to_sh(torch.tensor([[0.8, 0.1, 0.1]]).repeat(placed, 1)),
                   "sh_rest": torch.zeros(placed, (args[8] + 1) ** 2 - 1, 3)}
         shape = found.disparities.shape[-2:]
-        return dc.replace(found, params=params, report={**found.report, "added": placed}, d_new=torch.ones(shape))
+        return dc.replace(found, params=params, report={**found.report, "added": placed, "placed_pixels": placed},
+                          d_new=torch.ones(shape))
 
     monkeypatch.setattr(regional_edit, "initialize_from_views", answering_the_edge)
     trial = launch(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
