@@ -28,6 +28,7 @@ MEDIAN_GAIN_RECOLOURS = 12.0
 MIN_GAIN_WHOLE_PART_RECOLOUR = 8.0
 MIN_OUTSIDE = 45.0
 MEDIAN_OUTSIDE = 55.0
+MIN_UNEDITED = 50.0  # PSNR of the region no edit should touch, against the source
 
 
 def localize_only(payload: dict) -> bool:
@@ -85,7 +86,7 @@ def targets(records: Sequence[dict], localization_only: bool = False) -> List[Tu
                  lambda r: (r["psnr_outside_vs_true_edit"] or 0) >= MIN_OUTSIDE),
         median_of(f"median outside-footprint PSNR >= {MEDIAN_OUTSIDE:g} dB", [r["psnr_outside_vs_true_edit"] for r in ok],
                   MEDIAN_OUTSIDE),
-        per_case("unedited PSNR >= 50 dB, every case", lambda r: (r["psnr_unedited"] or 0) >= 50),
+        per_case(f"unedited PSNR >= {MIN_UNEDITED:g} dB, every case", lambda r: (r["psnr_unedited"] or 0) >= MIN_UNEDITED),
         *localization,
         per_case("no stopped run", lambda r: not r.get("stopped")),
         per_case("no source Gaussian deleted", lambda r: r.get("source_deleted") == 0),
