@@ -440,11 +440,12 @@ def new_gaussians_from_depth(
 
 
 # New Gaussians from a view's depth: at most one per cell of a grid this many cells across the view's
-# shorter side (`placement_cell`). At 64² and 96² (the truth suite, the demo) that is one per pixel, as
-# tuned; at 512² one per 8 x 8 pixels, so that an edit adds as many Gaussians at any resolution, the
-# detail left to densification (at 128², one per pixel added 2.8-4.3x the truth's Gaussians on the
-# donut's large additions: 284651 c15, 713359 c17).
-PLACEMENT_GRID_CELLS = 64
+# shorter side (`placement_cell`): one per pixel up to 255² (the truth suite at 64² and 128², the demo
+# at 96²), per 4 x 4 pixels at 512², so that above that an edit adds about as many Gaussians as at 128²
+# and leaves the detail to densification. One per pixel added 2-4x at 128² what it adds at 64²; a grid
+# of 64 (one per 2 x 2 at 128²) added 2.7x fewer there but lost 0.46 dB in the footprint and 2.2 dB
+# outside it (docs/decisions.md).
+PLACEMENT_GRID_CELLS = 128
 
 
 def placement_cell(camera: Camera, stride: int = 1) -> int:
