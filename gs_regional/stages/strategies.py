@@ -527,7 +527,7 @@ class Addition(EditStrategy):
 def is_recolour_edge(report: dict, refine: RefineConfig) -> bool:
     """Is initialization's change of shape (`report`) only a recolour's edge (MIN_SHAPE_PIXELS)?"""
     fraction = report.get("recoloured_fraction")
-    return (0 < report.get("placed_pixels", report.get("added", 0)) < MIN_SHAPE_PIXELS and fraction is not None
+    return (0 < report.get("placed_pixels", 0) < MIN_SHAPE_PIXELS and fraction is not None
             and fraction >= refine.min_recoloured_fraction)
 
 

@@ -313,7 +313,7 @@ class RegionalEdit(EditSystemBase):
             log.info(
                 "initialize: added %d Gaussians from the depth of view %d (%d region pixels without a depth change "
                 "beyond %.3f, %d merged into a Gaussian of their cell, %d too far from the region, %d over the cap of "
-                "%d)", n, v, report["skipped_unchanged"], report["depth_threshold"], report.get("merged_pixels", 0),
+                "%d)", n, v, report["skipped_unchanged"], report["depth_threshold"], report["merged_pixels"],
                 report.get("skipped_far_from_region", 0), report["skipped_by_cap"], cfg.init.max_new,
             )
         self.save_image("initialize/depth_unedited.png", _normalize(disp[0]))

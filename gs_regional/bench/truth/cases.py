@@ -34,7 +34,8 @@ LOCALIZE_ONLY = "system.stop_after=localize"
 METRIC_KEYS = (
     "psnr_region_vs_true_edit", "psnr_region_source_vs_true_edit", "psnr_outside_vs_true_edit",
     "psnr_outside_source_vs_true_edit", "psnr_far_outside_vs_true_edit", "outside_error_near_footprint",
-    "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited", "ssim_region_vs_true_edit", "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall",
+    "psnr_vs_true_edit", "psnr_source_vs_true_edit", "psnr_unedited", "ssim_region_vs_true_edit",
+    "mask_iou", "mask_iou_seen", "mask_iou_exact_masks", "mask_precision", "mask_recall",
     "mask_precision_exact_masks", "mask_recall_exact_masks", "view_agreement",
     "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
