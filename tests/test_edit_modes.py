@@ -28,6 +28,17 @@ def test_stop_after_localize_writes_the_localization_figures_and_the_source_unch
     assert best["best_masks"][0] >= m["mask_iou"] - 1e-9 and best["best_masks"][1] in (own, 0.95)
     assert relift(str(trial), [EDGE_COLOUR_RATIO], thresholds=[own])[EDGE_COLOUR_RATIO]["best_exact"] == (
         pytest.approx(m["mask_iou_exact_masks"], abs=1e-9), own)
+    # --breakdown: every false positive and every miss falls in exactly one of its reasons, and the
+    # counts give back the run's precision and recall
+    from gs_regional.bench.relift import breakdown
+
+    b = breakdown(str(trial))
+    for group in ("false_positives", "misses"):
+        assert sum(b[group][k] for k in ("unseen", "covered", "partly", "pooled")) == b[group]["all"]
+    fp, miss = b["false_positives"]["all"], b["misses"]["all"]
+    assert (b["selected"] - fp) / b["selected"] == pytest.approx(m["mask_precision"], abs=1e-9)
+    assert (b["truth"] - miss) / b["truth"] == pytest.approx(m["mask_recall"], abs=1e-9)
+    assert 0 <= b["straddlers"]["truth"] <= b["straddlers"]["all"] <= b["selected"]
 
 
 def test_a_checkpoint_written_with_a_retired_setting_stops_the_resume_with_one_line():

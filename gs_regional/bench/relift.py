@@ -4,9 +4,13 @@ and exact 2D masks of its known region, lifted as the trial's config lifts them 
 `EDGE_COLOUR_RATIO` replaced; the median mask IoU, precision and recall of each ratio. With
 `--thresholds`, each case is also lifted at each of those `mask_threshold`s and keeps its best IoU:
 the median of those bests says how far the lift's bias alone could take the IoU (were each case
-given its own), apart from what the masks themselves get wrong.
+given its own), apart from what the masks themselves get wrong. With `--breakdown`, instead, where
+each run's selection departs from the truth (`breakdown`): whether its false positives were covered
+by the masks whole, in part or selected by their neighbours, and how many selected Gaussians
+straddle the masks' edge.
 
     python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5] [--thresholds 0.3 0.4 0.5 0.6 0.7 0.8 0.9]
+    python scripts/relift.py OUT_OR_TRIAL --breakdown
 
 No editor runs: a 32-case draw re-lifts in under a minute on 2 cores (about two with 7 thresholds).
 """
@@ -68,6 +72,53 @@ def relift(trial: str, ratios, thresholds=()) -> dict:
     return out
 
 
+# A straddler: a selected Gaussian with at least this much rendering weight (pixels, summed over the
+# views) on each side of the 2D masks, and between these shares of it inside them.
+STRADDLE_MIN_PX = 1.0
+STRADDLE_SHARES = (0.2, 0.8)
+
+
+def breakdown(trial: str) -> dict:
+    """Where a trial's selection departs from the truth, from its saved 2D masks: its false positives
+    (selected, not the truth's) and misses (the truth's, not selected) by the share of their own
+    rendering weight the masks cover, before neighbour pooling: "unseen" (no view sees them; they
+    took their neighbours' score), "covered" (at least the upper STRADDLE_SHARES inside), "partly"
+    (from half), "pooled" (under half: the neighbours' votes decided); and the straddlers
+    (selected, STRADDLE_MIN_PX or more on each side, their share inside within STRADDLE_SHARES),
+    with how many are the truth's. Counts of Gaussians."""
+    import numpy as np
+    import torch
+
+    from gs_regional.bench.launching import trial_truth
+    from gs_regional.metrics.region import SEEN_MIN_WEIGHT
+    from gs_regional.renderers.select import make_renderer
+    from gs_regional.stages.localize import LOCALIZATION_FILE, mask_votes, view_weights
+
+    cfg, scene = trial_truth(trial)
+    gt = scene.ground_truth
+    saved = np.load(os.path.join(trial, "save", LOCALIZATION_FILE))
+    renderer = make_renderer(cfg.system.renderer_type, cfg.system.get("renderer", {}), torch.device("cpu"))
+    with torch.no_grad():
+        views = view_weights(gt.source, renderer, [scene.cameras[int(i)] for i in saved["views"]])
+        num, den = mask_votes(views, [torch.from_numpy(m) for m in saved["masks"]])
+    inside, total = num.sum(0), den.sum(0)
+    share = torch.where(total > 0, inside / total.clamp_min(1e-12), torch.zeros_like(total))
+    selected, truth = torch.from_numpy(saved["selected"]).bool(), gt.region.cpu().bool()
+    unseen = total < SEEN_MIN_WEIGHT
+    low, high = STRADDLE_SHARES
+
+    def why(rows: torch.Tensor) -> dict:
+        seen = rows & ~unseen
+        return {"all": int(rows.sum()), "unseen": int((rows & unseen).sum()), "covered": int((seen & (share >= high)).sum()),
+                "partly": int((seen & (share >= 0.5) & (share < high)).sum()), "pooled": int((seen & (share < 0.5)).sum())}
+
+    straddle = (selected & (inside >= STRADDLE_MIN_PX) & (total - inside >= STRADDLE_MIN_PX)
+                & (share > low) & (share < high))
+    return {"false_positives": why(selected & ~truth), "misses": why(~selected & truth),
+            "straddlers": {"all": int(straddle.sum()), "truth": int((straddle & truth).sum())},
+            "selected": int(selected.sum()), "truth": int(truth.sum())}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("path", help="a truth-suite OUT dir (its runs/) or one trial dir")
@@ -75,10 +126,15 @@ def main(argv=None) -> int:
                     help="EDGE_COLOUR_RATIO values to lift with (0: no edge colour test)")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[],
                     help="mask_threshold values each case is also lifted at, keeping its best IoU")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="instead: where each run's selection departs from the truth (false positives and misses "
+                         "by the share of their rendering weight the masks cover; straddlers)")
     args = ap.parse_args(argv)
     found = trials(args.path)
     if not found:
         raise SystemExit(f"{args.path}: no trial with a save/localization.npz")
+    if args.breakdown:
+        return print_breakdowns(found)
     results = []
     for t in found:
         results.append(relift(t, args.edge_ratios, args.thresholds))
@@ -95,4 +151,26 @@ def main(argv=None) -> int:
             f"{src} median IoU {statistics.median(b[0] for b in best[src]):.3f} (its threshold: median "
             f"{statistics.median(b[1] for b in best[src]):.2f}, {min(b[1] for b in best[src]):.2f}-"
             f"{max(b[1] for b in best[src]):.2f})" for src in ("masks", "exact")))
+    return 0
+
+
+def print_breakdowns(found: list) -> int:
+    """`--breakdown`: a row per trial, then the totals."""
+    kinds = ("unseen", "covered", "partly", "pooled")
+    print("| trial | selected | truth | false positives: all / " + " / ".join(kinds) + " | misses: all / "
+          + " / ".join(kinds) + " | straddlers (the truth's) |\n| --- | --- | --- | --- | --- | --- |")
+    totals: dict = {}
+    for t in found:
+        b = breakdown(t)
+        for group in ("false_positives", "misses", "straddlers"):
+            for key, value in b[group].items():
+                totals[(group, key)] = totals.get((group, key), 0) + value
+        fp, miss = b["false_positives"], b["misses"]
+        print(f"| {os.path.relpath(t)} | {b['selected']} | {b['truth']} | {fp['all']} / "
+              + " / ".join(str(fp[k]) for k in kinds) + f" | {miss['all']} / " + " / ".join(str(miss[k]) for k in kinds)
+              + f" | {b['straddlers']['all']} ({b['straddlers']['truth']}) |", flush=True)
+    print(f"totals over {len(found)}: false positives {totals[('false_positives', 'all')]} ("
+          + ", ".join(f"{k} {totals[('false_positives', k)]}" for k in kinds) + f"); misses {totals[('misses', 'all')]} ("
+          + ", ".join(f"{k} {totals[('misses', k)]}" for k in kinds) + f"); straddlers {totals[('straddlers', 'all')]} "
+          f"({totals[('straddlers', 'truth')]} of them the truth's)")
     return 0
