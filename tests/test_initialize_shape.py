@@ -19,7 +19,7 @@ VIEW = 10  # a frontal view of the face (the demo picks it as its first edited v
 
 
 def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: int = 40, size: int = 96,
-               editor_seed: int = 0, fill: bool = False, cfg: Optional[InitConfig] = None):
+               editor_seed: int = 0, fill: bool = False, cfg: Optional[InitConfig] = None, back: bool = False):
     """new_gaussians_from_depth at `view` (a frontal one by default) of the synthetic `edit`, with
     the true 2D region (`fill`: a region covering every rendered pixel, none left to calibrate on)."""
     gt = make_edit(edit)
@@ -38,7 +38,7 @@ def initialize(edit: str, corruption: float = 1.0, view: int = VIEW, n_cameras: 
         disp = depth.disparity(torch.stack([out["rgb"], edited]), cameras=[cam, cam])
         params, report, _ = new_gaussians_from_depth(
             cam, out["rgb"], edited, region, out["depth"], out["alpha"], disp[0], disp[1], cfg or InitConfig(), 0,
-            region_means=gt.source.means[gt.region],
+            region_means=gt.source.means[gt.region], back=back,
         )
     return gt, params, report
 
@@ -51,6 +51,11 @@ def test_a_recolour_adds_no_geometry():
     assert report["added"] <= 0.01 * report["region_pixels"]
     assert "rejected" not in report and report["calibration_residual"] < 0.05
     assert report["depth_threshold"] >= 4 * report["depth_noise"] > 0
+
+
+def test_an_edit_that_changes_nothing_places_no_far_side_either():
+    _, params, report = initialize("empty", back=True)
+    assert report["added"] == 0 and report.get("placed_far_side", 0) == 0
 
 
 def test_an_addition_adds_next_to_the_true_new_gaussians():
@@ -393,3 +398,32 @@ def test_a_cycle_places_the_side_of_an_added_ball_that_the_first_view_did_not_se
     lacked = (placed - centre) @ towards_first < 0.25 * r  # on the half the scene lacked (or its rim)
     assert float(lacked.float().mean()) > 0.8
     assert len(place(torch.ones(len(gt.edited), dtype=torch.bool))) == 0
+
+
+def test_the_far_side_of_a_ball_placed_from_one_view_is_its_near_side_mirrored():
+    """Known answer: a ball of radius 1 at depth 10 seen head-on (10 px across its radius, a pixel a
+    tenth of it; the depth of each pixel its near surface, 10 - sqrt(1 - rho²)), a single pixel in
+    front of it (the estimator's noise), and beside it a flat patch at depth 12. The ball's far side
+    comes back mirrored about the plane DEPTH_TO_WIDTH radii behind its nearest point, within a
+    tenth of its radius (at 1 that is the ball's own far side, 10 + sqrt(1 - rho²)); where the near
+    side lies behind that plane (the ring of its silhouette), none; the stray pixel moves no part
+    of it. The patch, for all one view can tell, is as deep as DEPTH_TO_WIDTH times its width."""
+    from gs_regional.stages.initialize import DEPTH_TO_WIDTH, far_side_depth
+
+    rows, cols = torch.meshgrid(torch.arange(64), torch.arange(64), indexing="ij")
+    rho = ((rows - 20.0) ** 2 + (cols - 20.0) ** 2).sqrt() / 10.0  # in radii
+    ball = rho < 1.0
+    patch = (rows >= 36) & (cols >= 36) & (((rows - 49.5) ** 2 + (cols - 49.5) ** 2).sqrt() < 20.0)
+    pixels = torch.cat([ball.nonzero(), patch.nonzero()])
+    r = rho[pixels[:, 0], pixels[:, 1]]
+    on_ball = ball[pixels[:, 0], pixels[:, 1]]
+    depth = torch.where(on_ball, 10.0 - (1 - r.clamp(max=1) ** 2).sqrt(), torch.full_like(r, 12.0))
+    depth[int((r == 0).nonzero()[0])] = 8.0  # the ball's centre pixel, a radius in front of it
+    has, far = far_side_depth(pixels, depth, torch.full_like(depth, 0.1))
+    mirrored = 2 * (9.0 + DEPTH_TO_WIDTH) - depth
+    inner = on_ball & (r > 0) & (mirrored - depth > 0.2)
+    assert bool(has[inner].all()) and float((far - mirrored)[inner].abs().max()) < 0.1
+    assert not bool(has[on_ball & (mirrored < depth)].any())  # behind the plane: the silhouette's ring
+    assert float(has[on_ball].float().mean()) > 0.5
+    radius = (float((~on_ball).sum()) / torch.pi) ** 0.5 * 0.1
+    assert bool(has[~on_ball].all()) and float((far[~on_ball] - 12.0 - 2 * DEPTH_TO_WIDTH * radius).abs().max()) < 0.1

@@ -175,6 +175,45 @@ def behind_the_object(depth: torch.Tensor, pixels: torch.Tensor, changed: torch.
     return depth[pixels[:, 0], pixels[:, 1]] > beside * (1 + size)
 
 
+# A blob's nearest depth, for its far side: this quantile of its pixels' depths (the estimator's noise
+# puts a pixel or two well in front of the object).
+NEAR_QUANTILE = 0.1
+DEPTH_TO_WIDTH = 0.5
+
+
+def far_side_depth(pixels: torch.Tensor, depth: torch.Tensor, pixel_size: torch.Tensor) -> tuple:
+    """The far side of an object placed from one view's depth, mirrored about its middle: ((K,)
+    bool, the `pixels` (K, 2) whose far side lies more than their `pixel_size` (K,) (a pixel's
+    width at their depth) behind them; (K,) its depth, 2 (d_near + r) - `depth`, d_near the
+    nearest depth (NEAR_QUANTILE) of the pixel's 8-connected blob of placed pixels and r the blob's
+    radius (that of a disc of its area, in pixel widths at that depth): a ball's middle lies a
+    radius behind its nearest point.
+
+    Why: a depth map places the side of the object the view sees, a shell. From the side that shell
+    is seen edge-on, and a ball added on a head came out a crescent in the views that see it from
+    the side (381946 c23, +7.25 dB); the cycles place only what their targets show and the scene
+    lacks, and not enough to fill it. An object is taken to be about as deep as it is wide; where
+    it is flatter (a moustache on a face) the mirrored side lies inside what it rests on, hidden.
+    Not the silhouette's depth as the middle: there the estimator's blur mixes the object with
+    what lies behind it, and the mirrored side went as far behind."""
+    h = int(pixels[:, 0].max()) + 1
+    w = int(pixels[:, 1].max()) + 1
+    grid = torch.zeros(h, w, dtype=torch.bool, device=pixels.device)
+    grid[pixels[:, 0], pixels[:, 1]] = True
+    labels = components(grid)[pixels[:, 0], pixels[:, 1]]
+    _, blob = torch.unique(labels, return_inverse=True)
+    n = int(blob.max()) + 1
+    # each blob's NEAR_QUANTILE of depth (its pixels by blob, then by depth)
+    by_depth = torch.argsort(depth, stable=True)
+    grouped = by_depth[torch.argsort(blob[by_depth], stable=True)]
+    area = torch.bincount(blob, minlength=n)
+    start = torch.cumsum(area, 0) - area
+    near = depth[grouped[start + (NEAR_QUANTILE * (area - 1).to(depth.dtype)).long()]]
+    middle = near[blob] + DEPTH_TO_WIDTH * (area[blob].to(depth.dtype) / math.pi).sqrt() * pixel_size
+    far = 2 * middle - depth
+    return far - depth > pixel_size, far
+
+
 def rate_on(mask: torch.Tensor, where: torch.Tensor) -> float:
     """The fraction of the `where` pixels that `mask` marks (0 when `where` has none)."""
     return float(mask[where].float().mean()) if bool(where.any()) else 0.0
@@ -266,6 +305,7 @@ def new_gaussians_from_depth(
     cfg: InitConfig,
     sh_degree: int,
     region_means: Optional[torch.Tensor] = None,  # (M, 3) selected Gaussians, for `max_distance`
+    back: bool = False,  # also place the object's far side (`far_side_depth`)
 ) -> tuple:
     """Returns (params dict for GaussianModel.append, report dict, d_new (H, W) for pictures).
 
@@ -422,9 +462,20 @@ def new_gaussians_from_depth(
     # The decisions on these pixels (a change of shape or a recolour's edge, enough placed) count pixels.
     report["placed_pixels"] = int(pixels.shape[0])
     colors = edited[pixels[:, 0], pixels[:, 1]]
-    means, colors, depth, covered = merge_cells(pixels, means, colors, depth, placement_cell(camera, cfg.stride))
+    cell = placement_cell(camera, cfg.stride)
+    far = far_side_depth(pixels, depth, depth / (0.5 * (camera.fx + camera.fy))) if back and pixels.shape[0] else None
+    means, colors_front, depth, covered = merge_cells(pixels, means, colors, depth, cell)
+    report["merged_pixels"] = report["placed_pixels"] - means.shape[0]
+    report["placed_far_side"] = 0
+    if far is not None and bool(far[0].any()):
+        on, d_far = far[0], far[1][far[0]]
+        report["placed_far_side"] = int(on.sum())
+        far_means, far_colors, d_far, far_covered = merge_cells(
+            pixels[on], unproject(camera, d_far, pixels[on]), colors[on], d_far, cell)
+        means, depth = torch.cat([means, far_means]), torch.cat([depth, d_far])
+        colors_front, covered = torch.cat([colors_front, far_colors]), torch.cat([covered, far_covered])
+    colors = colors_front
     k = means.shape[0]
-    report["merged_pixels"] = report["placed_pixels"] - k
     # Isotropic Gaussians the size of the pixels each stands for at its depth.
     footprint = depth / (0.5 * (camera.fx + camera.fy)) * covered.sqrt() * cfg.scale_factor
     params = {
@@ -520,7 +571,7 @@ def initialize_from_views(
         disp = disparity(torch.stack([unedited, edited]), [cam, cam])
         params, report, d_new = new_gaussians_from_depth(
             cam, unedited, edited, region(u), out["depth"], out["alpha"], disp[0], disp[1], cfg, sh_degree,
-            region_means=region_means)
+            region_means=region_means, back=True)
         # A later view's calibration rejected for a poor fit is no evidence either way; a change of
         # shape seen without calibration (the region fills the view) is.
         shows_change = ("rejected" not in report and report["added"] > 0) or \
