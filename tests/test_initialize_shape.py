@@ -276,12 +276,13 @@ def test_an_addition_is_placed_from_the_view_whose_depth_shows_most_of_it():
                 region_means=gt.source.means[gt.region], changed_px=changed_px)
 
     side, front = 0, VIEW
-    alone = {u: run([u]).report["added"] for u in (side, front)}
+    reports = {u: run([u]).report for u in (side, front)}
+    alone = {u: r["placed_pixels"] for u, r in reports.items()}  # pixels of changed depth (not the far side)
     assert 0 < alone[side] < alone[front]  # seen edge-on, the moustache changes the depth of fewer pixels
     found = run([side, front])
     assert found.report["views_checked"] == [side, front]
-    assert found.report["views_placed"] == [alone[side], alone[front]]  # why the front was taken
-    assert found.view == front and found.report["added"] == alone[front]
+    assert found.report["views_placed"] == [reports[side]["added"], reports[front]["added"]]  # why the front was taken
+    assert found.view == front and found.report["added"] == reports[front]["added"]
     # Placed from the better view whichever comes first; a view whose depth shows no change is not taken.
     assert run([front, side]).view == front
     # A first view whose depth places PLACED_ENOUGH per pixel its edit changes is not second-guessed
