@@ -461,20 +461,21 @@ def new_gaussians_from_depth(
         pixels, depth, means = pixels[~blurred], depth[~blurred], means[~blurred]
     # The decisions on these pixels (a change of shape or a recolour's edge, enough placed) count pixels.
     report["placed_pixels"] = int(pixels.shape[0])
-    colors = edited[pixels[:, 0], pixels[:, 1]]
+    pixel_colors = edited[pixels[:, 0], pixels[:, 1]]
     cell = placement_cell(camera, cfg.stride)
-    far = far_side_depth(pixels, depth, depth / (0.5 * (camera.fx + camera.fy))) if back and pixels.shape[0] else None
-    means, colors_front, depth, covered = merge_cells(pixels, means, colors, depth, cell)
+    means, colors, merged_depth, covered = merge_cells(pixels, means, pixel_colors, depth, cell)
     report["merged_pixels"] = report["placed_pixels"] - means.shape[0]
     report["placed_far_side"] = 0
-    if far is not None and bool(far[0].any()):
-        on, d_far = far[0], far[1][far[0]]
-        report["placed_far_side"] = int(on.sum())
-        far_means, far_colors, d_far, far_covered = merge_cells(
-            pixels[on], unproject(camera, d_far, pixels[on]), colors[on], d_far, cell)
-        means, depth = torch.cat([means, far_means]), torch.cat([depth, d_far])
-        colors_front, covered = torch.cat([colors_front, far_colors]), torch.cat([covered, far_covered])
-    colors = colors_front
+    if back and pixels.shape[0]:
+        has_far, far = far_side_depth(pixels, depth, depth / (0.5 * (camera.fx + camera.fy)))
+        report["placed_far_side"] = int(has_far.sum())
+        if bool(has_far.any()):
+            behind = pixels[has_far]
+            far_means, far_colors, far_depth, far_covered = merge_cells(
+                behind, unproject(camera, far[has_far], behind), pixel_colors[has_far], far[has_far], cell)
+            means, colors = torch.cat([means, far_means]), torch.cat([colors, far_colors])
+            merged_depth, covered = torch.cat([merged_depth, far_depth]), torch.cat([covered, far_covered])
+    depth = merged_depth
     k = means.shape[0]
     # Isotropic Gaussians the size of the pixels each stands for at its depth.
     footprint = depth / (0.5 * (camera.fx + camera.fy)) * covered.sqrt() * cfg.scale_factor
