@@ -28,25 +28,35 @@ def trials(path: str) -> list:
     return [t for t in found if os.path.isfile(os.path.join(t, "save", "localization.npz"))]
 
 
-def relift(trial: str, ratios, thresholds=()) -> dict:
-    """{ratio: {"masks": mask_metrics of the saved masks' lift, "exact": of the exact masks', and with
-    `thresholds` "best_masks" / "best_exact": (the best IoU over them, the threshold that gives it)}}."""
+def saved_lift(trial: str) -> tuple:
+    """What a trial's localization saved, set up again: (its config, its ground truth, the saved
+    localization (npz), the renderer it used, the localization's cameras). A trial whose lift
+    saved no 2D masks (a given selection, or no lift) stops with its path named."""
     import numpy as np
     import torch
 
     from gs_regional.bench.launching import trial_truth
-    from gs_regional.config import parse_structured
-    from gs_regional.metrics.region import mask_metrics, splat_selection
     from gs_regional.renderers.select import make_renderer
-    from gs_regional.stages.localize import LOCALIZATION_FILE, LocalizeConfig, localize_gaussians
+    from gs_regional.stages.localize import LOCALIZATION_FILE
 
     cfg, scene = trial_truth(trial)
-    gt = scene.ground_truth
     saved = np.load(os.path.join(trial, "save", LOCALIZATION_FILE))
     if "masks" not in saved:
         raise SystemExit(f"{trial}: its localization saved no 2D masks (a given selection, or no lift)")
     renderer = make_renderer(cfg.system.renderer_type, cfg.system.get("renderer", {}), torch.device("cpu"))
-    cameras = [scene.cameras[int(i)] for i in saved["views"]]
+    return cfg, scene.ground_truth, saved, renderer, [scene.cameras[int(i)] for i in saved["views"]]
+
+
+def relift(trial: str, ratios, thresholds=()) -> dict:
+    """{ratio: {"masks": mask_metrics of the saved masks' lift, "exact": of the exact masks', and with
+    `thresholds` "best_masks" / "best_exact": (the best IoU over them, the threshold that gives it)}}."""
+    import torch
+
+    from gs_regional.config import parse_structured
+    from gs_regional.metrics.region import mask_metrics, splat_selection
+    from gs_regional.stages.localize import LocalizeConfig, localize_gaussians
+
+    cfg, gt, saved, renderer, cameras = saved_lift(trial)
     model = gt.source
     with torch.no_grad():
         images = torch.stack([renderer.render(model, cam)["rgb"].clamp(0, 1) for cam in cameras])
@@ -86,20 +96,14 @@ def breakdown(trial: str) -> dict:
     (from half), "pooled" (under half: the neighbours' votes decided); and the straddlers
     (selected, STRADDLE_MIN_PX or more on each side, their share inside within STRADDLE_SHARES),
     with how many are the truth's. Counts of Gaussians."""
-    import numpy as np
     import torch
 
-    from gs_regional.bench.launching import trial_truth
     from gs_regional.metrics.region import SEEN_MIN_WEIGHT
-    from gs_regional.renderers.select import make_renderer
-    from gs_regional.stages.localize import LOCALIZATION_FILE, mask_votes, view_weights
+    from gs_regional.stages.localize import mask_votes, view_weights
 
-    cfg, scene = trial_truth(trial)
-    gt = scene.ground_truth
-    saved = np.load(os.path.join(trial, "save", LOCALIZATION_FILE))
-    renderer = make_renderer(cfg.system.renderer_type, cfg.system.get("renderer", {}), torch.device("cpu"))
+    _, gt, saved, renderer, cameras = saved_lift(trial)
     with torch.no_grad():
-        views = view_weights(gt.source, renderer, [scene.cameras[int(i)] for i in saved["views"]])
+        views = view_weights(gt.source, renderer, cameras)
         num, den = mask_votes(views, [torch.from_numpy(m) for m in saved["masks"]])
     inside, total = num.sum(0), den.sum(0)
     share = torch.where(total > 0, inside / total.clamp_min(1e-12), torch.zeros_like(total))

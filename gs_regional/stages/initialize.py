@@ -178,6 +178,8 @@ def behind_the_object(depth: torch.Tensor, pixels: torch.Tensor, changed: torch.
 # A blob's nearest depth, for its far side: this quantile of its pixels' depths (the estimator's noise
 # puts a pixel or two well in front of the object).
 NEAR_QUANTILE = 0.1
+# How deep an object placed from one view is taken to be, in its widths, halved: its far side is mirrored
+# about a plane this many of its radii behind its near depth (1: a ball's own far side; docs/decisions.md).
 DEPTH_TO_WIDTH = 0.5
 
 
@@ -466,8 +468,9 @@ def new_gaussians_from_depth(
     means, colors, merged_depth, covered = merge_cells(pixels, means, pixel_colors, depth, cell)
     report["merged_pixels"] = report["placed_pixels"] - means.shape[0]
     report["placed_far_side"] = 0
+    focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
     if back and pixels.shape[0]:
-        has_far, far = far_side_depth(pixels, depth, depth / (0.5 * (camera.fx + camera.fy)))
+        has_far, far = far_side_depth(pixels, depth, depth / focal)
         report["placed_far_side"] = int(has_far.sum())
         if bool(has_far.any()):
             behind = pixels[has_far]
@@ -478,7 +481,7 @@ def new_gaussians_from_depth(
     depth = merged_depth
     k = means.shape[0]
     # Isotropic Gaussians the size of the pixels each stands for at its depth.
-    footprint = depth / (0.5 * (camera.fx + camera.fy)) * covered.sqrt() * cfg.scale_factor
+    footprint = depth / focal * covered.sqrt() * cfg.scale_factor
     params = {
         "means": means,
         "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(k, 1),
