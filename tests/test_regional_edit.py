@@ -179,6 +179,33 @@ def test_a_gaussian_the_views_barely_see_is_not_selected_on_the_little_it_shows(
     assert selected(faint, EVIDENCE_PRIOR) == [True] * 5 + [False]
 
 
+def test_a_gaussian_straddling_the_masks_edge_goes_to_the_side_holding_most_of_its_rendering_weight():
+    """The lift weighs both sides of a mask's edge: two views whose masks hold the left half of the
+    image, and Gaussians with 3/4, 1/2 and 1/4 of their rendering weight inside (straddlers), one
+    wholly inside and one wholly outside. At the default `mask_threshold` a straddler is selected
+    when most of its weight is inside; the setting is the bias that trades precision for recall
+    (lower: the straddlers join the region; higher: only what lies inside)."""
+    masks = [torch.zeros(12, 12) for _ in range(2)]
+    for m in masks:
+        m[:, :6] = 1
+    w = torch.zeros(5, 12, 12)
+    for i, first_col in enumerate((3, 4, 5)):  # four columns from here: 3/4, 1/2, 1/4 of them inside
+        w[i, 2 + 2 * i, first_col:first_col + 4] = 0.5
+    w[3, 9, 0:4] = 0.5  # inside
+    w[4, 11, 8:12] = 0.5  # outside
+    views = [MatrixWeights(w)] * 2
+
+    def selected(mask_threshold):
+        lift = {**LocalizeConfig(mask_threshold=mask_threshold).lift(), "edge_ratio": 0.0}  # no images: no edge test
+        return localize_gaussians(None, None, [None, None], masks, reuse={"views": views, "neighbourhood": None},
+                                  **lift)["selected"].tolist()
+
+    assert LocalizeConfig().mask_threshold == 0.5
+    assert selected(0.5) == [True, False, False, True, False]
+    assert selected(0.2) == [True, True, True, True, False]
+    assert selected(0.8) == [False, False, False, True, False]
+
+
 def test_gaussians_no_view_sees_take_their_neighbours_scores():
     """A part's inside shows the views nothing, and a pooled vote over neighbours that no view
     sees either is empty: those Gaussians take, layer by layer inward, the scores of their
