@@ -465,20 +465,17 @@ def new_gaussians_from_depth(
     report["placed_pixels"] = int(pixels.shape[0])
     pixel_colors = edited[pixels[:, 0], pixels[:, 1]]
     cell = placement_cell(camera, cfg.stride)
-    means, colors, merged_depth, covered = merge_cells(pixels, means, pixel_colors, depth, cell)
-    report["merged_pixels"] = report["placed_pixels"] - means.shape[0]
-    report["placed_far_side"] = 0
     focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
-    if back and pixels.shape[0]:
-        has_far, far = far_side_depth(pixels, depth, depth / focal)
-        report["placed_far_side"] = int(has_far.sum())
-        if bool(has_far.any()):
-            behind = pixels[has_far]
-            far_means, far_colors, far_depth, far_covered = merge_cells(
-                behind, unproject(camera, far[has_far], behind), pixel_colors[has_far], far[has_far], cell)
-            means, colors = torch.cat([means, far_means]), torch.cat([colors, far_colors])
-            merged_depth, covered = torch.cat([merged_depth, far_depth]), torch.cat([covered, far_covered])
-    depth = merged_depth
+    far_mask, far = (far_side_depth(pixels, depth, depth / focal) if back and pixels.shape[0]
+                     else (torch.zeros_like(depth, dtype=torch.bool), depth))
+    cells = merge_cells(pixels, means, pixel_colors, depth, cell)
+    report["merged_pixels"] = report["placed_pixels"] - cells[0].shape[0]
+    report["placed_far_side"] = int(far_mask.sum())
+    if report["placed_far_side"]:  # merged apart from the near side: a cell holds one depth
+        behind, far = pixels[far_mask], far[far_mask]
+        far_side = merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell)
+        cells = tuple(torch.cat(pair) for pair in zip(cells, far_side))
+    means, colors, depth, covered = cells
     k = means.shape[0]
     # Isotropic Gaussians the size of the pixels each stands for at its depth.
     footprint = depth / focal * covered.sqrt() * cfg.scale_factor
