@@ -2,7 +2,11 @@
 known answers on three synthetic views, no system, no Lightning."""
 import torch
 
-from gs_regional.stages.first_view import check_edit, choose_first_view, stop_message
+from gs_regional.geometry.gaussian_model import GaussianModel
+from gs_regional.metrics.region import render_selection
+from gs_regional.registry import find
+from gs_regional.sim.scene import look_at
+from gs_regional.stages.first_view import CHECKED_COVER, check_edit, choose_first_view, stop_message
 
 H = W = 32
 
@@ -62,3 +66,41 @@ def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree():
 def test_a_coverage_check_of_zero_never_stops():
     first, _ = _choose([False, False, False], min_edit_coverage=0.0)
     assert not first.stop and first.view == 0
+
+
+def test_a_part_the_selection_renders_faintly_is_checked_where_it_shows():
+    """A small part whose render covers no pixel by half (a patch of translucent Gaussians in front
+    of a wall, like the face splat's patches of a few Gaussians): checked against the pixels the
+    selection renders at least CHECKED_COVER of, an edit painted on the patch lies in the selection
+    (against the pixels covered by half, the region is empty and every edit would stop the run),
+    and an edit as large painted in a corner still lies elsewhere."""
+    ys, xs = torch.meshgrid(torch.linspace(-1, 1, 24), torch.linspace(-1, 1, 24), indexing="ij")
+    wall = torch.stack([xs.flatten(), ys.flatten(), torch.zeros(24 * 24)], 1)
+    py, px = torch.meshgrid(torch.linspace(-0.08, 0.08, 3), torch.linspace(-0.08, 0.08, 3), indexing="ij")
+    patch = torch.stack([px.flatten(), py.flatten(), torch.full((9,), 0.2)], 1)
+    n = len(wall) + len(patch)
+    opacity = torch.cat([torch.full((len(wall),), 0.99), torch.full((len(patch),), 0.15)])
+    model = GaussianModel.from_tensors(
+        means=torch.cat([wall, patch]), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        log_scales=torch.full((n, 3), -3.0), opacity_logits=torch.logit(opacity),
+        sh_dc=torch.cat([torch.zeros(len(wall), 3), torch.tensor([[1.0, -1.0, -1.0]]).repeat(len(patch), 1)]))
+    selected = torch.arange(n) >= len(wall)
+    renderer = find("torch-rasterizer")()
+    cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), H, W)
+    with torch.no_grad():
+        out = renderer.render(model, cam)
+        cover = render_selection(model, renderer, cam, selected)
+    assert 0.1 < float(cover.max()) < 0.5  # faint: no pixel covered by half
+    source = out["rgb"].clamp(0, 1)
+    on_patch, in_corner = source.clone(), source.clone()
+    painted = cover > 0.1
+    on_patch[painted] = torch.tensor([0.2, 0.2, 0.9])
+    in_corner[:4, :4] = torch.tensor([0.2, 0.2, 0.9])
+    alpha, depth = out["alpha"].reshape(H, W), out["depth"].reshape(H, W)
+
+    def check(edited, min_cover):
+        return check_edit(0, edited, source, cover > min_cover, alpha, depth)
+
+    assert not bool((cover > 0.5).any()) and check(on_patch, 0.5).elsewhere(0.5)  # the old region: empty
+    assert check(on_patch, CHECKED_COVER).agrees(0.5)
+    assert check(in_corner, CHECKED_COVER).elsewhere(0.5)

@@ -14,7 +14,7 @@ import torch
 from gs_regional.config import ConfigError, check_saved_config, need
 from gs_regional.stages.ablation import AblationConfig
 from gs_regional.stages.change import recoloured_fraction
-from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
+from gs_regional.stages.first_view import CHECKED_COVER, FirstView, check_edit, choose_first_view, mask_areas, stop_message
 from gs_regional.stages.initialize import (
     HOLE_MAX_DISTANCE, InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views,
     new_gaussians_in_holes,
@@ -203,8 +203,10 @@ class RegionalEdit(EditSystemBase):
         np.savez(self.save_path(LOCALIZATION_FILE), **out)
 
     # ----- stage 2 -------------------------------------------------------------------------------
-    def rendered_mask(self, index: int) -> torch.Tensor:
-        return render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask) > 0.5
+    def rendered_mask(self, index: int, min_cover: float = 0.5) -> torch.Tensor:
+        """(H, W) bool: the pixels of view `index` the selection renders more than `min_cover` of."""
+        cover = render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask)
+        return cover > min_cover
 
     @torch.no_grad()
     def run_initialize(self) -> Optional[FirstView]:
@@ -228,8 +230,8 @@ class RegionalEdit(EditSystemBase):
         whole = bool(g.mask.all())
         first = choose_first_view(
             views, areas, localized, masks2d, views[int(torch.argmax(areas))], self.full_edit,
-            lambda u, out: check_edit(u, out, self.source_renders[u], localized[u], self.source_alpha(u),
-                                      self.source_render(u)["depth"], global_edit=whole),
+            lambda u, out: check_edit(u, out, self.source_renders[u], self.rendered_mask(u, CHECKED_COVER),
+                                      self.source_alpha(u), self.source_render(u)["depth"], global_edit=whole),
             cfg.localization.min_edit_coverage)
         s.v_first, s.first_edit = first.view, first.edited
         self.save_image("initialize/first_view_source.png", self.source_renders[first.view])
