@@ -286,3 +286,37 @@ def test_simulated_depth_edit_bias_moves_only_the_new_geometry(cams):
     # an image of the source shows no new geometry: untouched
     src = v["src_rgb"][None]
     assert torch.equal(plain.disparity(src, cameras=[cam]), biased.disparity(src, cameras=[cam]))
+
+
+def test_simulated_depth_following_the_drawn_edit_sees_an_object_where_the_image_draws_it(cams):
+    """An editor draws the object a few pixels off its true place (position jitter): with
+    `follow_drawn_px` the estimator reports the new geometry's depth where the image shows it, and
+    the source's where the truth has the object but the image does not, as a real estimator would;
+    compared in place (0, the default) it mostly sees the object only where the drawing overlaps the truth."""
+    from gs_regional.sim.depth import shifted
+
+    gt = make_edit("add")
+    depth = find("simulated-depth")({"corruption": 0.0, "follow_drawn_px": 6})
+    in_place_only = find("simulated-depth")({"corruption": 0.0})
+    depth.attach_ground_truth(gt)
+    in_place_only.attach_ground_truth(gt)
+    cam = cams["front"]
+    v = depth.truth_renderer.views(cam)
+    layer = ((v["edit_rgb"] - v["src_rgb"]).abs().amax(-1) > 1e-3) | ((v["edit_depth"] - v["src_depth"]).abs() > 1e-6)
+    dx, dy = 3, -2
+    drawn = torch.where(shifted(layer, dx, dy)[..., None], shifted(v["edit_rgb"], dx, dy), v["src_rgb"])
+    source = depth.disparity(v["src_rgb"][None], cameras=[cam])[0]
+    in_place = depth.disparity(v["edit_rgb"][None], cameras=[cam])[0]  # the moustache where the truth has it
+    seen = depth.disparity(drawn[None], cameras=[cam])[0]
+    assert depth.last_shift == [(dx, dy)]
+    nearer = (v["src_depth"] - v["edit_depth"]) > 0.02
+    at_drawn = shifted(nearer, dx, dy) & ~nearer
+    left_bare = nearer & ~shifted(layer, dx, dy)
+    assert at_drawn.sum() > 10 and left_bare.sum() > 10
+    # where it is drawn: the moustache's own disparity, moved with it
+    assert ((seen - shifted(in_place, dx, dy))[at_drawn].abs() < 1e-5).float().mean() > 0.9
+    assert ((seen - source)[at_drawn].abs() > 1e-3).float().mean() > 0.9
+    assert (seen[left_bare] - source[left_bare]).abs().max() < 1e-5  # where it is not drawn: the source
+    # compared in place: the drawn object clear of the true one shows the source's depth
+    assert ((in_place_only.disparity(drawn[None], cameras=[cam])[0] - source)[at_drawn].abs() < 1e-5).float().mean() > 0.6
+    assert in_place_only.last_shift == [(0, 0)]
