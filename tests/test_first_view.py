@@ -6,7 +6,8 @@ from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.metrics.region import render_selection
 from gs_regional.registry import find
 from gs_regional.sim.scene import look_at
-from gs_regional.stages.first_view import CHECKED_COVER, check_edit, choose_first_view, stop_message
+from gs_regional.stages.first_view import check_edit, choose_first_view, stop_message
+from gs_regional.stages.localize import covered
 
 H = W = 32
 
@@ -71,9 +72,10 @@ def test_a_coverage_check_of_zero_never_stops():
 def test_a_part_the_selection_renders_faintly_is_checked_where_it_shows():
     """A small part whose render covers no pixel by half (a patch of translucent Gaussians in front
     of a wall, like the face splat's patches of a few Gaussians): checked against the pixels the
-    selection renders at least CHECKED_COVER of, an edit painted on the patch lies in the selection
-    (against the pixels covered by half, the region is empty and every edit would stop the run),
-    and an edit as large painted in a corner still lies elsewhere."""
+    selection covers by half of its most (`covered(..., faint=True)`, as the views-disagree stop
+    does), an edit painted on the patch lies in the selection (against the pixels covered by half,
+    the region is empty and every edit would stop the run), and an edit as large painted in a
+    corner still lies elsewhere."""
     ys, xs = torch.meshgrid(torch.linspace(-1, 1, 24), torch.linspace(-1, 1, 24), indexing="ij")
     wall = torch.stack([xs.flatten(), ys.flatten(), torch.zeros(24 * 24)], 1)
     py, px = torch.meshgrid(torch.linspace(-0.08, 0.08, 3), torch.linspace(-0.08, 0.08, 3), indexing="ij")
@@ -93,14 +95,15 @@ def test_a_part_the_selection_renders_faintly_is_checked_where_it_shows():
     assert 0.1 < float(cover.max()) < 0.5  # faint: no pixel covered by half
     source = out["rgb"].clamp(0, 1)
     on_patch, in_corner = source.clone(), source.clone()
-    painted = cover > 0.1
-    on_patch[painted] = torch.tensor([0.2, 0.2, 0.9])
+    on_patch[cover > 0.1] = torch.tensor([0.2, 0.2, 0.9])
     in_corner[:4, :4] = torch.tensor([0.2, 0.2, 0.9])
     alpha, depth = out["alpha"].reshape(H, W), out["depth"].reshape(H, W)
 
-    def check(edited, min_cover):
-        return check_edit(0, edited, source, cover > min_cover, alpha, depth)
+    def check(edited, faint):
+        return check_edit(0, edited, source, covered(cover, faint), alpha, depth)
 
-    assert not bool((cover > 0.5).any()) and check(on_patch, 0.5).elsewhere(0.5)  # the old region: empty
-    assert check(on_patch, CHECKED_COVER).agrees(0.5)
-    assert check(in_corner, CHECKED_COVER).elsewhere(0.5)
+    assert not bool(covered(cover).any()) and check(on_patch, False).elsewhere(0.5)  # by half: empty
+    assert check(on_patch, True).agrees(0.5)
+    assert check(in_corner, True).elsewhere(0.5)
+    # a selection covering pixels by half is checked against those, faint or not
+    assert torch.equal(covered(cover * 2, True), covered(cover * 2))

@@ -30,11 +30,6 @@ HIDES_REGION = 0.5
 # added on a small part sticks out over what lies behind but covers the part, while an edit placed
 # on something else changes next to none of the selection.
 MIN_FILLED = 0.1
-# The region a full edit is checked against: the pixels the selection renders at least this share
-# of. Its anti-aliased rim counts: at 64² that rim is a pixel wide, and a small part (a patch of a
-# few Gaussians whose render covers no pixel by half; a ball on a part whose core is 5 px) shows
-# the edit there or just beside it.
-CHECKED_COVER = 0.25
 
 
 @dataclass

@@ -159,6 +159,14 @@ def lift_masks(model, renderer, cameras: Sequence[Camera], masks: Sequence[torch
     return weighted_scores(num, den, torch.ones(len(cameras), device=num.device))
 
 
+def covered(cover: torch.Tensor, faint: bool = False) -> torch.Tensor:
+    """(H, W) bool: the pixels a selection's render `cover` (`render_selection`) covers by more than
+    half; with `faint`, in a view where it covers none by half (a part a pixel or two across), those
+    it covers by more than half of its most."""
+    peak = float(cover.max())
+    return cover > (0.5 * peak if faint and peak <= 0.5 else 0.5)
+
+
 def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor], selected: torch.Tensor,
                    faint: bool = False, tolerance_px: int = 0) -> torch.Tensor:
     """IoU, per view, of the 2D mask with the render of the 3D selection (V,): the pixels the
@@ -174,9 +182,7 @@ def mask_agreement(views: Sequence[PixelWeights], masks: Sequence[torch.Tensor],
     plain IoU though both masks lie on the same spot, while a mask elsewhere stays apart."""
     out = []
     for view, m in zip(views, masks):
-        cover = splat_selection(view, selected)
-        peak = float(cover.max())
-        r = cover > (0.5 * peak if faint and peak <= 0.5 else 0.5)
+        r = covered(splat_selection(view, selected), faint)
         m = m.to(r.device) > 0.5
         # a, b: the pixels of each mask within tolerance_px of the other (0: both the intersection,
         # and the expression is the plain IoU exactly: integer counts, one rounding)

@@ -14,13 +14,13 @@ import torch
 from gs_regional.config import ConfigError, check_saved_config, need
 from gs_regional.stages.ablation import AblationConfig
 from gs_regional.stages.change import recoloured_fraction
-from gs_regional.stages.first_view import CHECKED_COVER, FirstView, check_edit, choose_first_view, mask_areas, stop_message
+from gs_regional.stages.first_view import FirstView, check_edit, choose_first_view, mask_areas, stop_message
 from gs_regional.stages.initialize import (
     HOLE_MAX_DISTANCE, InitConfig, calibration_pixels, depth_calibration_pixels, initialize_from_views,
     new_gaussians_in_holes,
 )
 from gs_regional.stages.localize import (
-    LOCALIZATION_FILE, LocalizeConfig, localize_selection, render_selection, splat_selection, views_disagree,
+    LOCALIZATION_FILE, LocalizeConfig, covered, localize_selection, render_selection, splat_selection, views_disagree,
 )
 from gs_regional.stages.prune import prune_useless_added
 from gs_regional.stages.state import EditState
@@ -203,10 +203,11 @@ class RegionalEdit(EditSystemBase):
         np.savez(self.save_path(LOCALIZATION_FILE), **out)
 
     # ----- stage 2 -------------------------------------------------------------------------------
-    def rendered_mask(self, index: int, min_cover: float = 0.5) -> torch.Tensor:
-        """(H, W) bool: the pixels of view `index` the selection renders more than `min_cover` of."""
-        cover = render_selection(self.geometry, self.renderer, self.scene.cameras[index].to(self.device), self.geometry.mask)
-        return cover > min_cover
+    def rendered_mask(self, index: int, faint: bool = False) -> torch.Tensor:
+        """(H, W) bool: the pixels of view `index` the selection covers by more than half (`covered`;
+        with `faint`, by half of its most in a view where it covers none by half)."""
+        cam = self.scene.cameras[index].to(self.device)
+        return covered(render_selection(self.geometry, self.renderer, cam, self.geometry.mask), faint)
 
     @torch.no_grad()
     def run_initialize(self) -> Optional[FirstView]:
@@ -230,7 +231,7 @@ class RegionalEdit(EditSystemBase):
         whole = bool(g.mask.all())
         first = choose_first_view(
             views, areas, localized, masks2d, views[int(torch.argmax(areas))], self.full_edit,
-            lambda u, out: check_edit(u, out, self.source_renders[u], self.rendered_mask(u, CHECKED_COVER),
+            lambda u, out: check_edit(u, out, self.source_renders[u], self.rendered_mask(u, faint=True),
                                       self.source_alpha(u), self.source_render(u)["depth"], global_edit=whole),
             cfg.localization.min_edit_coverage)
         s.v_first, s.first_edit = first.view, first.edited
