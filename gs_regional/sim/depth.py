@@ -9,7 +9,7 @@ corruption, like the relative disparity a real estimator (Depth Anything) return
     disparity of the scene it looks more like (a partly or imperfectly edited image gets the new
     geometry where it shows it). An editor draws an object a few pixels off its true place (the
     simulated editor's position jitter). Compared in place (`follow_drawn_px` 0, the default), the
-    estimator sees the new geometry only where the drawn object overlaps the true one: it tells the
+    estimator sees the new geometry mostly where the drawn object overlaps the true one: it tells the
     method where the truth is, and misses an object drawn clear of it. With `follow_drawn_px` N the
     true edit's changed layer is first moved by the whole pixels (up to N each way) that best explain
     the image, so the estimator sees the object where the image draws it, as a real one does;
