@@ -63,17 +63,17 @@ def drawn_edit(image: torch.Tensor, views: dict, radius: int) -> tuple:
     changed = (((edit["rgb"] - src["rgb"]).abs().amax(-1) > 1e-3) | ((edit["depth"] - src["depth"]).abs() > 1e-6)
                | ((edit["alpha"] - src["alpha"]).abs() > 1e-3))
 
-    def moved(dx: int, dy: int) -> dict:
+    def moved(dx: int, dy: int, names=("rgb", "depth", "alpha")) -> dict:
         where = shifted(changed, dx, dy)
-        return {k: torch.where(where[..., None] if v.dim() == 3 else where, shifted(edit[k], dx, dy), v)
-                for k, v in src.items()}
+        return {k: torch.where(where[..., None] if src[k].dim() == 3 else where, shifted(edit[k], dx, dy), src[k])
+                for k in names}
 
     best, best_err = (0, 0), None
     if bool(changed.any()):
         shifts = sorted(((dx, dy) for dx in range(-radius, radius + 1) for dy in range(-radius, radius + 1)),
                         key=lambda s: s[0] ** 2 + s[1] ** 2)
         for dx, dy in shifts:
-            err = float(((image - moved(dx, dy)["rgb"]) ** 2).sum())
+            err = float(((image - moved(dx, dy, ("rgb",))["rgb"]) ** 2).sum())
             if best_err is None or err < best_err:
                 best, best_err = (dx, dy), err
     out = moved(*best)

@@ -209,6 +209,12 @@ class RegionalEdit(EditSystemBase):
         cam = self.scene.cameras[index].to(self.device)
         return covered(render_selection(self.geometry, self.renderer, cam, self.geometry.mask), faint)
 
+    def checked_region(self, index: int, localized: torch.Tensor) -> torch.Tensor:
+        """What a full edit of view `index` is checked against: the `localized` pixels (covered by
+        half), or, where the selection covers none by half, those it covers by half of its most
+        (`covered(..., faint=True)`, rendered only then)."""
+        return localized if bool(localized.any()) else self.rendered_mask(index, faint=True)
+
     @torch.no_grad()
     def run_initialize(self) -> Optional[FirstView]:
         """The first view (§3.2 step 1), then new Gaussians from its depth; the returned first view
@@ -231,7 +237,7 @@ class RegionalEdit(EditSystemBase):
         whole = bool(g.mask.all())
         first = choose_first_view(
             views, areas, localized, masks2d, views[int(torch.argmax(areas))], self.full_edit,
-            lambda u, out: check_edit(u, out, self.source_renders[u], self.rendered_mask(u, faint=True),
+            lambda u, out: check_edit(u, out, self.source_renders[u], self.checked_region(u, localized[u]),
                                       self.source_alpha(u), self.source_render(u)["depth"], global_edit=whole),
             cfg.localization.min_edit_coverage)
         s.v_first, s.first_edit = first.view, first.edited
