@@ -20,6 +20,10 @@ def test_stop_after_localize_writes_the_localization_figures_and_the_source_unch
     assert again[EDGE_COLOUR_RATIO]["masks"]["mask_iou"] == pytest.approx(m["mask_iou"], abs=1e-9)
     assert again[EDGE_COLOUR_RATIO]["exact"]["mask_iou"] == pytest.approx(m["mask_iou_exact_masks"], abs=1e-9)
     assert again[0.0]["masks"]["mask_recall"] >= again[EDGE_COLOUR_RATIO]["masks"]["mask_recall"]
+    # --grow: the exact masks grown by a pixel reach past the part: they find at least its Gaussians
+    # the exact masks find, and only with --grow are they lifted
+    grown = relift(str(trial), [0.0], grow=1)[0.0]
+    assert grown["grown"]["mask_recall"] >= grown["exact"]["mask_recall"] and "grown" not in again[0.0]
     # each case at its best threshold: the run's own threshold among them gives at least the run's IoU
     import numpy as np
 

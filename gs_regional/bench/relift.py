@@ -4,12 +4,14 @@ and exact 2D masks of its known region, lifted as the trial's config lifts them 
 `EDGE_COLOUR_RATIO` replaced; the median mask IoU, precision and recall of each ratio. With
 `--thresholds`, each case is also lifted at each of those `mask_threshold`s and keeps its best IoU:
 the median of those bests says how far the lift's bias alone could take the IoU (were each case
-given its own), apart from what the masks themselves get wrong. With `--breakdown`, instead, where
+given its own), apart from what the masks themselves get wrong. With `--grow PX`, the exact masks are
+also lifted grown by PX pixels ("grown"): what masks that reach that far past the part allow the lift,
+as relevance maps from coarse latents do. With `--breakdown`, instead, where
 each run's selection departs from the truth (`breakdown`): whether its false positives were covered
 by the masks whole, in part or selected by their neighbours, and how many selected Gaussians
 straddle the masks' edge.
 
-    python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5] [--thresholds 0.3 0.4 0.5 0.6 0.7 0.8 0.9]
+    python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5] [--thresholds 0.3 0.4 0.5 0.6 0.7 0.8 0.9] [--grow 1]
     python scripts/relift.py OUT_OR_TRIAL --breakdown
 
 No editor runs: a 32-case draw re-lifts in under a minute on 2 cores (about two with 7 thresholds).
@@ -47,14 +49,16 @@ def saved_lift(trial: str) -> tuple:
     return cfg, scene.ground_truth, saved, renderer, [scene.cameras[int(i)] for i in saved["views"]]
 
 
-def relift(trial: str, ratios, thresholds=()) -> dict:
-    """{ratio: {"masks": mask_metrics of the saved masks' lift, "exact": of the exact masks', and with
-    `thresholds` "best_masks" / "best_exact": (the best IoU over them, the threshold that gives it)}}."""
+def relift(trial: str, ratios, thresholds=(), grow: int = 0) -> dict:
+    """{ratio: {"masks": mask_metrics of the saved masks' lift, "exact": of the exact masks', with
+    `grow` > 0 "grown": of the exact masks grown by that many pixels, and with `thresholds`
+    "best_<each of those>": (the best IoU over them, the threshold that gives it)}}."""
     import torch
 
     from gs_regional.config import parse_structured
     from gs_regional.metrics.region import mask_metrics, splat_selection
     from gs_regional.stages.localize import LocalizeConfig, localize_gaussians
+    from gs_regional.utils.image import dilate
 
     cfg, gt, saved, renderer, cameras = saved_lift(trial)
     model = gt.source
@@ -69,13 +73,14 @@ def relift(trial: str, ratios, thresholds=()) -> dict:
             if first is None:  # its pixel weights and neighbourhoods serve every lift below
                 first = localize_gaussians(model, renderer, cameras, masks, **lift)
                 exact = [splat_selection(v, gt.region) > 0.5 for v in first["views"]]
+                sources = [("masks", masks), ("exact", exact)] + ([("grown", [dilate(e, grow) for e in exact])] if grow else [])
 
             def scored(these, **changed) -> dict:
                 return mask_metrics(localize_gaussians(model, renderer, cameras, these, reuse=first, **{**lift, **changed})[
                     "selected"], gt.region)
 
             out[ratio] = {}
-            for name, these in (("masks", masks), ("exact", exact)):
+            for name, these in sources:
                 out[ratio][name] = scored(these)
                 if thresholds:
                     out[ratio][f"best_{name}"] = max((scored(these, threshold=t)["mask_iou"] or 0.0, t) for t in thresholds)
@@ -130,6 +135,8 @@ def main(argv=None) -> int:
                     help="EDGE_COLOUR_RATIO values to lift with (0: no edge colour test)")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[],
                     help="mask_threshold values each case is also lifted at, keeping its best IoU")
+    ap.add_argument("--grow", type=int, default=0, metavar="PX",
+                    help="also lift the exact masks grown by PX pixels (masks reaching that far past the part)")
     ap.add_argument("--breakdown", action="store_true",
                     help="instead: where each run's selection departs from the truth (false positives and misses "
                          "by the share of their rendering weight the masks cover; straddlers)")
@@ -141,20 +148,23 @@ def main(argv=None) -> int:
         return print_breakdowns(found)
     results = []
     for t in found:
-        results.append(relift(t, args.edge_ratios, args.thresholds))
+        results.append(relift(t, args.edge_ratios, args.thresholds, args.grow))
         print(f"{len(results)}/{len(found)} {t}", flush=True)
-    print("| edge ratio | IoU | precision | recall | IoU, exact masks | precision | recall |\n| --- | --- | --- | --- | --- | --- | --- |")
+    sources = ("masks", "exact") + (("grown",) if args.grow else ())
+    names = {"masks": "", "exact": ", exact masks", "grown": f", exact masks grown {args.grow} px"}
+    print("| edge ratio | " + " | ".join(f"IoU{names[src]} | precision | recall" for src in sources) + " |\n| --- |"
+          + " --- | --- | --- |" * len(sources))
     for ratio in args.edge_ratios:
         med = {(src, key): statistics.median(r[ratio][src][key] or 0.0 for r in results)
-               for src in ("masks", "exact") for key in ("mask_iou", "mask_precision", "mask_recall")}
-        print(f"| {ratio} | " + " | ".join(f"{med[(src, key)]:.3f}" for src in ("masks", "exact")
+               for src in sources for key in ("mask_iou", "mask_precision", "mask_recall")}
+        print(f"| {ratio} | " + " | ".join(f"{med[(src, key)]:.3f}" for src in sources
                                          for key in ("mask_iou", "mask_precision", "mask_recall")) + " |")
     for ratio in args.edge_ratios if args.thresholds else ():
-        best = {src: [r[ratio][f"best_{src}"] for r in results] for src in ("masks", "exact")}
+        best = {src: [r[ratio][f"best_{src}"] for r in results] for src in sources}
         print(f"edge ratio {ratio}, each case at its best of mask_threshold {args.thresholds}: " + "; ".join(
             f"{src} median IoU {statistics.median(b[0] for b in best[src]):.3f} (its threshold: median "
             f"{statistics.median(b[1] for b in best[src]):.2f}, {min(b[1] for b in best[src]):.2f}-"
-            f"{max(b[1] for b in best[src]):.2f})" for src in ("masks", "exact")))
+            f"{max(b[1] for b in best[src]):.2f})" for src in sources))
     return 0
 
 
