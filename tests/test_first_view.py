@@ -14,14 +14,17 @@ H = W = 32
 
 def _views(inside):
     """Three views of a grey scene whose selection is a square at the centre; `inside[v]`: whether
-    view v's full edit paints the square (True) or a square as large in a corner (False)."""
+    view v's full edit paints the square (True), a square as large in a corner (False) or one
+    beside it, a quarter of it within 2 px of the square ("beside": an edit that only just missed)."""
     source = torch.full((H, W, 3), 0.5)
     region = torch.zeros(H, W, dtype=torch.bool)
     region[12:20, 12:20] = True
     edits = {}
     for v, ok in enumerate(inside):
         out = source.clone()
-        if ok:
+        if ok == "beside":
+            out[12:20, 20:28] = torch.tensor([0.9, 0.1, 0.1])
+        elif ok:
             out[12:20, 12:20] = torch.tensor([0.9, 0.1, 0.1])
         else:
             out[0:8, 0:8] = torch.tensor([0.9, 0.1, 0.1])
@@ -56,6 +59,15 @@ def test_an_edit_elsewhere_in_every_view_stops_with_one_message():
     assert first.stop and edited == [0, 1]  # the second view is edited too: one view never decides alone
     assert first.decided.coverage < 0.1
     assert "system.localization.min_edit_coverage=0.5" in stop_message(first, 0.5)
+
+
+def test_a_first_edit_that_only_just_missed_lets_the_next_view_decide_and_the_stop_names_both():
+    first, edited = _choose(["beside", False, False])
+    assert first.stop and edited == [0, 1] and first.view == 0  # initialization would stay with the first view
+    assert first.own.coverage == 0.25 and first.decided.view == 1
+    message = stop_message(first, 0.5)
+    assert message.startswith("initialize: view 1, where the editor's 2D masks and the selection overlap most")
+    assert "(view 0, edited first, puts 0.25 in it)" in message and "showed almost nothing" not in message
 
 
 def test_a_first_edit_placed_elsewhere_is_outvoted_by_two_views_that_agree():

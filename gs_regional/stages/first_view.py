@@ -196,12 +196,20 @@ def choose_first_view(
 def stop_message(first: FirstView, min_edit_coverage: float) -> str:
     """The warning of a run that stops because its first edit lies outside the region."""
     decided = first.decided
-    other = next((c for c in first.checks if c is not decided), None)
-    note = "" if other is None else (
-        f" (view {other.view}, edited first, showed almost nothing of the edit)" if other is first.checks[0] else
-        f" (view {other.view}, where the editor's 2D masks and the selection overlap most, puts "
-        f"{other.coverage or 0:.2f} in it: the editor edits different things in different views)")
-    return (f"initialize: the first edited view ({decided.view}) changes the image outside the localized region: a "
-            f"fraction {decided.coverage:.2f} of its change beyond the editor's noise lies in the region, below "
-            f"system.localization.min_edit_coverage={min_edit_coverage}, and it changes {decided.region_changed:.2f} "
-            f"of the region's pixels{note}; localization selected something other than what the editor edits.")
+    if decided.view != first.view:
+        # the first edit only just missed and the view where the 2D masks and the selection overlap
+        # most decided (initialization stays with the first view)
+        lead = (f"view {decided.view}, where the editor's 2D masks and the selection overlap most, changes the image "
+                f"outside the localized region too")
+        note = f" (view {first.view}, edited first, puts {first.own.coverage or 0:.2f} in it)"
+    else:
+        lead = f"the first edited view ({decided.view}) changes the image outside the localized region"
+        other = next((c for c in first.checks if c is not decided), None)
+        note = "" if other is None else (
+            f" (view {other.view}, edited first, showed almost nothing of the edit)" if other is first.checks[0] else
+            f" (view {other.view}, where the editor's 2D masks and the selection overlap most, puts "
+            f"{other.coverage or 0:.2f} in it: the editor edits different things in different views)")
+    return (f"initialize: {lead}: a fraction {decided.coverage:.2f} of its change beyond the editor's noise lies in the "
+            f"region, below system.localization.min_edit_coverage={min_edit_coverage}, and it changes "
+            f"{decided.region_changed:.2f} of the region's pixels{note}; localization selected something other than what "
+            f"the editor edits.")
