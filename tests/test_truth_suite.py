@@ -188,6 +188,9 @@ def test_compare_marks_a_difference_inside_both_runs_seed_spreads(capsys):
     # run by run at the same seed: c01 +1, +1 and c02 +4, +4 (gain); c01 +2, 0 and c02 -10.9, -9.1 (outside)
     assert "gain: 4 runs, better in 4, worse by more than 0.3 dB in 0, median difference +2.50 dB" in out
     assert "outside: 4 runs, better in 1, worse by more than 0.3 dB in 2, median difference -4.55 dB" in out
+    # case by case, their (median) runs: c02 is 10 dB worse outside, beyond both seed ranges
+    assert "cases worse by more than 1 dB, outside: 1 of 2 (c02; inside both runs' seed ranges: none)" in out
+    assert "cases worse by more than 1 dB, gain: 0 of 2\n" in out
 
 
 def test_a_suite_wide_seed_override_is_the_runs_seed():

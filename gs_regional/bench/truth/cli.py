@@ -73,7 +73,7 @@ densification samples; the scene and the truth stay) and reports each case's med
 range: one run of a case differs from the next seed's by several dB outside the footprint
 (docs/results.md), more than most changes between two codes. --compare BEFORE sets a run (or
 --replot) against another run of the draw case by case, a difference inside both runs' ranges
-marked `~`.
+marked `~`, and names the cases whose (median) run is worse by more than 1 dB.
 """
 from __future__ import annotations
 

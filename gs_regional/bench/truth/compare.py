@@ -11,6 +11,11 @@ from gs_regional.bench.truth.cases import JSON_NAME, run_seed, spread
 from gs_regional.bench.truth.report import MET_WORDS, targets
 from gs_regional.metrics.region import NEAR_FOOTPRINT_PX
 
+# The cases whose (median) run is worse than this many dB are named: a longer refinement is held to
+# none worse outside the footprint, and none with less gain.
+WORSE_DB = 1.0
+
+
 def load_payload(path: str, option: str = "--compare") -> dict:
     """A suite's JSON, given as the file or the folder holding it (`option` names it in the error)."""
     path = path if path.endswith(".json") else os.path.join(path, JSON_NAME)
@@ -50,6 +55,7 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
     print("| case | kind | gain dB | outside dB | UNet |")
     print("| --- | --- | --- | --- | --- |")
     rows = []
+    inside_spread = set()  # (case, key): a difference inside both runs' seed ranges
     for i in shared:
         x, y = b[i], a[i]
         row = {"id": i}
@@ -62,6 +68,8 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
             su, sv = spread(x, key), spread(y, key)
             noise = su is not None and sv is not None and su[0] <= sv[1] and sv[0] <= su[1]
             row[key] = v - u
+            if noise:
+                inside_spread.add((i, key))
             cells.append(f"{u:.2f} -> {v:.2f} ({v - u:+.2f}{' ~' if noise else ''})")
         rows.append(row)
         print(f"| {i} | {y['kind']} | {cells[0]} | {cells[1]} | {x.get('unet_evals')} -> {y.get('unet_evals')} |")
@@ -84,6 +92,13 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
             print(f"paired runs (the same run seed at both, neither stopped), {label}: {len(d)} runs, better in "
                   f"{sum(v > 0 for v in d)}, worse by more than 0.3 dB in {sum(v < -0.3 for v in d)}, median "
                   f"difference {statistics.median(d):+.2f} dB")
+    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")):
+        # a longer refinement's target: no case's (median) run worse by more than WORSE_DB
+        worse = [r["id"] for r in rows if r.get(key, 0.0) < -WORSE_DB]
+        if rows:
+            noisy = [i for i in worse if (i, key) in inside_spread]
+            print(f"cases worse by more than {WORSE_DB:g} dB, {label}: {len(worse)} of {len(rows)}"
+                  + (f" ({', '.join(worse)}; inside both runs' seed ranges: {', '.join(noisy) or 'none'})" if worse else ""))
     for rs, name in (([b[i] for i in shared], names[0]), ([a[i] for i in shared], names[1])):
         met = targets(rs)
         print(f"{name}: " + "; ".join(f"{MET_WORDS[ok]} {t.split(',')[0]} ({fig})" for t, ok, fig, _ in met if ok is not None))
