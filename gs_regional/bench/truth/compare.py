@@ -93,7 +93,6 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
                   f"{sum(v > 0 for v in d)}, worse by more than 0.3 dB in {sum(v < -0.3 for v in d)}, median "
                   f"difference {statistics.median(d):+.2f} dB")
     for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")):
-        # a longer refinement's target: no case's (median) run worse by more than WORSE_DB
         worse = [r["id"] for r in rows if r.get(key, 0.0) < -WORSE_DB]
         if rows:
             noisy = [i for i in worse if (i, key) in inside_spread]
