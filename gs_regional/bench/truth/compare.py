@@ -92,12 +92,11 @@ def compare_report(before: dict, after: dict, names: Tuple[str, str] = ("before"
             print(f"paired runs (the same run seed at both, neither stopped), {label}: {len(d)} runs, better in "
                   f"{sum(v > 0 for v in d)}, worse by more than 0.3 dB in {sum(v < -0.3 for v in d)}, median "
                   f"difference {statistics.median(d):+.2f} dB")
-    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")):
+    for key, label in (("gain", "gain"), ("psnr_outside_vs_true_edit", "outside")) if rows else ():
         worse = [r["id"] for r in rows if r.get(key, 0.0) < -WORSE_DB]
-        if rows:
-            noisy = [i for i in worse if (i, key) in inside_spread]
-            print(f"cases worse by more than {WORSE_DB:g} dB, {label}: {len(worse)} of {len(rows)}"
-                  + (f" ({', '.join(worse)}; inside both runs' seed ranges: {', '.join(noisy) or 'none'})" if worse else ""))
+        noisy = [i for i in worse if (i, key) in inside_spread]
+        print(f"cases worse by more than {WORSE_DB:g} dB, {label}: {len(worse)} of {len(rows)}"
+              + (f" ({', '.join(worse)}; inside both runs' seed ranges: {', '.join(noisy) or 'none'})" if worse else ""))
     for rs, name in (([b[i] for i in shared], names[0]), ([a[i] for i in shared], names[1])):
         met = targets(rs)
         print(f"{name}: " + "; ".join(f"{MET_WORDS[ok]} {t.split(',')[0]} ({fig})" for t, ok, fig, _ in met if ok is not None))
