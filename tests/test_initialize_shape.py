@@ -428,3 +428,65 @@ def test_the_far_side_of_a_ball_placed_from_one_view_is_its_near_side_mirrored()
     assert float(has[on_ball].float().mean()) > 0.5
     radius = (float((~on_ball).sum()) / torch.pi) ** 0.5 * 0.1
     assert bool(has[~on_ball].all()) and float((far[~on_ball] - 12.0 - 2 * DEPTH_TO_WIDTH * radius).abs().max()) < 0.1
+
+
+def _ball_seen_from_the_front(size: int = 48, radius: float = 0.5):
+    """The pixels of a front camera whose rays hit a ball at the origin, their depth and world
+    points, and a camera looking at the ball from the side (+x)."""
+    from gs_regional.sim.scene import look_at
+    from gs_regional.stages.initialize import unproject
+
+    front, side = look_at((0, 0, 3), (0, 0, 0), size, size), look_at((3, 0, 0), (0, 0, 0), size, size)
+
+    def hits(cam):
+        pix = torch.stack(torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij"), -1).reshape(-1, 2)
+        centre = cam.camera_to_world[:3, 3]
+        ray = unproject(cam, torch.ones(pix.shape[0]), pix) - centre  # camera depth 1
+        b, a = (ray * centre).sum(-1), (ray * ray).sum(-1)
+        disc = b * b - a * ((centre * centre).sum() - radius ** 2)
+        depth = (-b - disc.clamp_min(0).sqrt()) / a
+        return pix, disc > 0, depth, centre + depth[:, None] * ray
+
+    pix, hit, depth, _ = hits(front)
+    return front, side, pix[hit], depth[hit], hits(side)
+
+
+def test_gaussians_placed_from_a_balls_depth_cover_it_seen_from_the_side():
+    """One Gaussian per pixel of a ball's near side, from the front view's depth: seen from the side
+    (90 degrees), the isotropic Gaussians of a pixel's width left a fifth of that half of the ball
+    open (its rim, where neighbouring pixels lie several widths apart in depth); spread along the
+    surface to their neighbours they cover it."""
+    from gs_regional.stages.initialize import surface_covariances, unproject
+    from gs_regional.utils.rotations import covariance_to_scales_quats
+
+    front, side, pix, depth, (_, side_hit, _, side_points) = _ball_seen_from_the_front()
+    means = unproject(front, depth, pix)
+    width = depth / (0.5 * (front.fx + front.fy))
+    renderer = find("torch-rasterizer")()
+    near_half = side_hit & (side_points[:, 2] > 0.05)  # the side view's pixels of the ball's near half
+
+    def covered(log_scales, quats):
+        k = means.shape[0]
+        model = GaussianModel.from_tensors(means, quats, log_scales, torch.full((k,), 2.0), torch.zeros(k, 3))
+        with torch.no_grad():
+            alpha = renderer.render(model, side)["alpha"].reshape(-1)
+        return float((alpha[near_half] > 0.5).float().mean())
+
+    isotropic = covered(torch.log(0.5 * width)[:, None].repeat(1, 3), torch.tensor([1.0, 0, 0, 0]).repeat(len(depth), 1))
+    surface = covered(*covariance_to_scales_quats(surface_covariances(pix, means, width, front, 0.5)))
+    assert isotropic < 0.85 and surface > 0.88, (isotropic, surface)
+
+
+def test_gaussians_placed_from_depth_are_isotropic_facing_the_camera_and_never_bridge_a_jump():
+    """On a surface facing the camera each Gaussian is the isotropic one of half a pixel's width;
+    where the depth steps away by several pixel widths between neighbours (the object's edge over
+    what lies behind) it does not stretch across."""
+    from gs_regional.sim.scene import look_at
+    from gs_regional.stages.initialize import SURFACE_REACH, surface_covariances, unproject
+
+    cam = look_at((0, 0, 3), (0, 0, 0), 32, 32)
+    pix = torch.stack(torch.meshgrid(torch.arange(8, 20), torch.arange(8, 20), indexing="ij"), -1).reshape(-1, 2)
+    depth = torch.where(pix[:, 1] < 14, 2.5, 2.5 + 2 * SURFACE_REACH * 2.5 / cam.fx)  # a step behind at column 14
+    width = depth / (0.5 * (cam.fx + cam.fy))
+    std = torch.linalg.eigvalsh(surface_covariances(pix, unproject(cam, depth, pix), width, cam, 0.5)).sqrt()
+    assert torch.allclose(std, (0.5 * width)[:, None].expand_as(std), rtol=1e-3)

@@ -48,7 +48,7 @@ from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.registry import find, register
-from gs_regional.utils.rotations import rotmat_to_quat
+from gs_regional.utils.rotations import covariance_to_scales_quats, rotmat_to_quat
 from gs_regional.utils.sh import rgb_to_sh
 from gs_regional.sim.truth import GroundTruth
 
@@ -174,14 +174,6 @@ def _inside(part: _Ellipsoid, pts: torch.Tensor, margin: float = 0.995) -> torch
     return local.norm(dim=-1) < margin
 
 
-def _cov_to_gaussian(cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Covariances (N, 3, 3) -> (log-scales (N, 3), quaternions (N, 4))."""
-    evals, evecs = torch.linalg.eigh(cov)
-    det = torch.linalg.det(evecs)
-    evecs[:, :, 0] *= torch.sign(det)[:, None]  # a proper rotation
-    return 0.5 * torch.log(evals.clamp_min(1e-14)), rotmat_to_quat(evecs)
-
-
 def _shade(normals: torch.Tensor) -> torch.Tensor:
     light = torch.tensor(_LIGHT, dtype=torch.float64)
     light = light / light.norm()
@@ -277,7 +269,7 @@ def _assemble(chunks) -> _Arrays:
 def _object_chunk(parts, n, gen, avoid, label_of, opacity):
     chunks = []
     for name, pts, cov, rgb in _surface(parts, n, gen, avoid):
-        log_scales, quats = _cov_to_gaussian(cov)
+        log_scales, quats = covariance_to_scales_quats(cov)
         # a little per-Gaussian colour variation, multiplicative so that recolouring keeps it
         rgb = rgb * (1 + 0.04 * torch.randn(len(rgb), 1, generator=gen, dtype=torch.float64))
         chunks.append(

@@ -42,8 +42,9 @@ from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
 from gs_regional.geometry.neighbors import knn, quantile_box
 from gs_regional.registry import register
-from gs_regional.sim.scene import _cov_to_gaussian, _Ellipsoid, _sample_ellipsoid, look_at
+from gs_regional.sim.scene import _Ellipsoid, _sample_ellipsoid, look_at
 from gs_regional.sim.truth import GroundTruth
+from gs_regional.utils.rotations import covariance_to_scales_quats
 from gs_regional.utils.sh import rgb_to_sh, sh_to_rgb
 
 EDIT_NAMES = ("recolor", "add")
@@ -332,7 +333,7 @@ def sphere_gaussians(center: torch.Tensor, radius: float, count: int, color: Seq
     gen = torch.Generator().manual_seed(int(seed) + 4241)
     part = _Ellipsoid("cherry", tuple(center.tolist()), (radius,) * 3, tuple(color))
     pts, cov, normals = _sample_ellipsoid(part, int(count), gen)
-    log_scales, quats = _cov_to_gaussian(cov)
+    log_scales, quats = covariance_to_scales_quats(cov)
     shade = 0.7 + 0.3 * (normals.float() @ light).clamp_min(0)
     rgb = (torch.tensor(color, dtype=torch.float32) * shade[:, None]).clamp(0, 1)
     k1 = (sh_degree + 1) ** 2 - 1

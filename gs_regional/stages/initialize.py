@@ -15,6 +15,7 @@ from gs_regional.depth.calibration import calibrated_depth, robust_affine, trans
 from gs_regional.stages.change import match_colors, real_change
 from gs_regional.geometry.neighbors import quantile_box, within_radius
 from gs_regional.utils.image import components, dilate
+from gs_regional.utils.rotations import covariance_to_scales_quats
 from gs_regional.utils.sh import rgb_to_sh
 
 log = logging.getLogger(__name__)
@@ -468,21 +469,26 @@ def new_gaussians_from_depth(
     focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
     far_mask, far = (far_side_depth(pixels, depth, depth / focal) if back and pixels.shape[0]
                      else (torch.zeros_like(depth, dtype=torch.bool), depth))
-    cells = merge_cells(pixels, means, pixel_colors, depth, cell)
-    report["merged_pixels"] = report["placed_pixels"] - cells[0].shape[0]
+    def gaussians(cells: tuple) -> tuple:  # (means, colours, log-scales, quats) of one side's cells
+        means, colors, depth, covered, blocks = cells
+        width = (depth / focal * covered.sqrt()).clamp_min(1e-6)  # of the pixels each stands for, at its depth
+        log_scales, quats = covariance_to_scales_quats(surface_covariances(blocks, means, width, camera, cfg.scale_factor))
+        return means, colors, log_scales, quats
+
+    near_side = merge_cells(pixels, means, pixel_colors, depth, cell)
+    report["merged_pixels"] = report["placed_pixels"] - near_side[0].shape[0]
     report["placed_far_side"] = int(far_mask.sum())
+    sides = [gaussians(near_side)] if pixels.shape[0] else []
     if report["placed_far_side"]:  # merged apart from the near side: a cell holds one depth
         behind, far = pixels[far_mask], far[far_mask]
-        far_side = merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell)
-        cells = tuple(torch.cat(pair) for pair in zip(cells, far_side))
-    means, colors, depth, covered = cells
+        sides.append(gaussians(merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell)))
+    means, colors, log_scales, quats = (tuple(torch.cat(x) for x in zip(*sides)) if sides else
+                                        (means, pixel_colors, means.new_zeros(0, 3), means.new_zeros(0, 4)))
     k = means.shape[0]
-    # Isotropic Gaussians the size of the pixels each stands for at its depth.
-    footprint = depth / focal * covered.sqrt() * cfg.scale_factor
     params = {
         "means": means,
-        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(k, 1),
-        "log_scales": torch.log(footprint.clamp_min(1e-6))[:, None].repeat(1, 3),
+        "quats": quats,
+        "log_scales": log_scales,
         "opacity_logits": torch.logit(torch.full((k,), cfg.opacity, device=device)),
         "sh_dc": rgb_to_sh(colors),
         "sh_rest": torch.zeros(k, (sh_degree + 1) ** 2 - 1, 3, device=device),
@@ -510,19 +516,61 @@ def merge_cells(pixels: torch.Tensor, means: torch.Tensor, colors: torch.Tensor,
                 cell: int) -> tuple:
     """One point per `cell` x `cell` block of image `pixels` (K, 2) (row, col) that holds any: the
     mean of their world `means` (K, 3), `colors` (K, 3) and `depth` (K,). Returns (means, colors,
-    depth, covered), `covered` (M,) the pixels each stands for; at `cell` 1 the inputs as they are."""
+    depth, covered, blocks), `covered` (M,) the pixels each stands for and `blocks` (M, 2) its
+    block's (row, col); at `cell` 1 the inputs as they are."""
     if cell <= 1 or not pixels.shape[0]:
-        return means, colors, depth, torch.ones_like(depth)
+        return means, colors, depth, torch.ones_like(depth), pixels
     block = pixels // cell
     _, inverse = torch.unique(block[:, 0] * (int(block[:, 1].max()) + 1) + block[:, 1], return_inverse=True)
     m = int(inverse.max()) + 1
     covered = torch.zeros(m, device=depth.device, dtype=depth.dtype).index_add_(0, inverse, torch.ones_like(depth))
+    blocks = torch.zeros(m, 2, device=pixels.device, dtype=pixels.dtype).index_copy_(0, inverse, block)
 
     def mean(x: torch.Tensor) -> torch.Tensor:
         return torch.zeros(m, *x.shape[1:], device=x.device, dtype=x.dtype).index_add_(0, inverse, x) / \
             covered.view(-1, *[1] * (x.dim() - 1))
 
-    return mean(means), mean(colors), mean(depth), covered
+    return mean(means), mean(colors), mean(depth), covered, blocks
+
+
+# A Gaussian placed from depth reaches along the surface to its grid neighbours: no further than this many
+# of its cells' widths (beyond, the depth jumps: the object's edge over what lies behind, not its surface).
+SURFACE_REACH = 4.0
+
+
+def surface_covariances(blocks: torch.Tensor, means: torch.Tensor, width: torch.Tensor, camera: Camera,
+                        scale_factor: float) -> torch.Tensor:
+    """(M, 3, 3) covariances of Gaussians placed on a grid of cells (`blocks` (M, 2) their (row,
+    col), `means` (M, 3) world points, `width` (M,) a cell's width at their depth): spread along
+    the surface their grid neighbours span, `scale_factor` x the step to them (the mean of the steps
+    either way, each at most SURFACE_REACH widths; the camera's own axis x `width` where neither
+    neighbour is placed), and `scale_factor` x `width` across it. Facing the camera that is the
+    isotropic Gaussian of `scale_factor` x `width`.
+
+    Why: one Gaussian per pixel samples a surface the view sees obliquely (a ball's rim) sparsely:
+    neighbouring pixels lie several pixel widths apart in depth there, and the views from the side
+    saw through the gaps between isotropic Gaussians."""
+    m = means.shape[0]
+    r, c = blocks[:, 0].long() + 1, blocks[:, 1].long() + 1  # one cell of margin all round
+    grid = torch.full((int(r.max()) + 2, int(c.max()) + 2), -1, dtype=torch.long, device=means.device)
+    grid[r, c] = torch.arange(m, device=means.device)
+    rot = camera.camera_to_world[:3, :3].to(means)
+
+    def tangent(dr: int, dc: int, axis: torch.Tensor) -> torch.Tensor:
+        total, count = torch.zeros_like(means), torch.zeros(m, 1, dtype=means.dtype, device=means.device)
+        for sign in (1, -1):
+            other = grid[r + sign * dr, c + sign * dc]
+            step = sign * (means[other.clamp_min(0)] - means)
+            ok = ((other >= 0) & (step.norm(dim=-1) <= SURFACE_REACH * width))[:, None]
+            total, count = total + step * ok, count + ok
+        return torch.where(count > 0, total / count.clamp_min(1), axis * width[:, None])
+
+    t_u, t_v = tangent(0, 1, rot[:, 0]), tangent(1, 0, rot[:, 1])
+    normal = torch.linalg.cross(t_u, t_v)
+    normal = torch.where(normal.norm(dim=-1, keepdim=True) > 1e-12 * width[:, None] ** 2, normal, rot[:, 2].expand_as(normal))
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    outer = lambda a, b: a[:, :, None] * b[:, None, :]  # noqa: E731
+    return scale_factor ** 2 * (outer(t_u, t_u) + outer(t_v, t_v) + width[:, None, None] ** 2 * outer(normal, normal))
 
 
 # A first view whose depth places new Gaussians on at least this fraction of the pixels its edit changes (beyond

@@ -45,3 +45,12 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     q = q / q.norm(dim=-1, keepdim=True)
     q = q * torch.where(q[:, :1] < 0, -1.0, 1.0)
     return q.reshape(batch + (4,))
+
+
+def covariance_to_scales_quats(cov: torch.Tensor) -> tuple:
+    """(N, 3, 3) symmetric positive definite covariances -> (log-scales (N, 3), unit quaternions
+    (N, 4) (w, x, y, z)): the Gaussians' own parametrisation (eigenvectors as a proper rotation)."""
+    evals, evecs = torch.linalg.eigh(cov)
+    evecs = evecs.clone()
+    evecs[:, :, 0] *= torch.sign(torch.linalg.det(evecs))[:, None]  # a proper rotation
+    return 0.5 * torch.log(evals.clamp_min(1e-14)), rotmat_to_quat(evecs)
