@@ -469,6 +469,7 @@ def new_gaussians_from_depth(
     focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
     far_mask, far = (far_side_depth(pixels, depth, depth / focal) if back and pixels.shape[0]
                      else (torch.zeros_like(depth, dtype=torch.bool), depth))
+
     def gaussians(cells: tuple) -> tuple:  # (means, colours, log-scales, quats) of one side's cells
         means, colors, depth, covered, blocks = cells
         width = (depth / focal * covered.sqrt()).clamp_min(1e-6)  # of the pixels each stands for, at its depth
@@ -569,8 +570,10 @@ def surface_covariances(blocks: torch.Tensor, means: torch.Tensor, width: torch.
     normal = torch.linalg.cross(t_u, t_v)
     normal = torch.where(normal.norm(dim=-1, keepdim=True) > 1e-12 * width[:, None] ** 2, normal, rot[:, 2].expand_as(normal))
     normal = normal / normal.norm(dim=-1, keepdim=True)
-    outer = lambda a, b: a[:, :, None] * b[:, None, :]  # noqa: E731
-    return scale_factor ** 2 * (outer(t_u, t_u) + outer(t_v, t_v) + width[:, None, None] ** 2 * outer(normal, normal))
+    def outer(a: torch.Tensor) -> torch.Tensor:
+        return a[:, :, None] * a[:, None, :]
+
+    return scale_factor ** 2 * (outer(t_u) + outer(t_v) + width[:, None, None] ** 2 * outer(normal))
 
 
 # A first view whose depth places new Gaussians on at least this fraction of the pixels its edit changes (beyond
