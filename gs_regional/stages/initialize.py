@@ -479,12 +479,11 @@ def new_gaussians_from_depth(
     near_side = merge_cells(pixels, means, pixel_colors, depth, cell)
     report["merged_pixels"] = report["placed_pixels"] - near_side[0].shape[0]
     report["placed_far_side"] = int(far_mask.sum())
-    sides = [gaussians(near_side)] if pixels.shape[0] else []
+    sides = [gaussians(near_side)]
     if report["placed_far_side"]:  # merged apart from the near side: a cell holds one depth
         behind, far = pixels[far_mask], far[far_mask]
         sides.append(gaussians(merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell)))
-    means, colors, log_scales, quats = (tuple(torch.cat(x) for x in zip(*sides)) if sides else
-                                        (means, pixel_colors, means.new_zeros(0, 3), means.new_zeros(0, 4)))
+    means, colors, log_scales, quats = (torch.cat(x) for x in zip(*sides))
     k = means.shape[0]
     params = {
         "means": means,
@@ -552,6 +551,8 @@ def surface_covariances(blocks: torch.Tensor, means: torch.Tensor, width: torch.
     neighbouring pixels lie several pixel widths apart in depth there, and the views from the side
     saw through the gaps between isotropic Gaussians."""
     m = means.shape[0]
+    if m == 0:
+        return means.new_zeros(0, 3, 3)
     r, c = blocks[:, 0].long() + 1, blocks[:, 1].long() + 1  # one cell of margin all round
     grid = torch.full((int(r.max()) + 2, int(c.max()) + 2), -1, dtype=torch.long, device=means.device)
     grid[r, c] = torch.arange(m, device=means.device)
