@@ -282,6 +282,45 @@ def _blobs(offset: float, colours, n: int = 150):
                                       sh_dc=rgb_to_sh(rgb))
 
 
+def test_a_colour_class_threaded_through_another_part_is_no_part_a_case_picks():
+    """A red blob beside a blue one of translucent Gaussians, every fifth of them dark blue: a colour
+    class threaded through the blue part (as streaks of a wall's texture are in the fitted face).
+    The red blob and the rest of the blue show the views regions of their own (most of their
+    rendered weight where they are most of the pixel), the thread none; a whole-part case never
+    picks the thread, even when its size is the one drawn."""
+    import types
+
+    import torch
+
+    from gs_regional.bench.truth import scenes
+    from gs_regional.geometry.gaussian_model import GaussianModel
+    from gs_regional.sim.scene import look_at
+    from gs_regional.sim.splat_truth import part_visibility
+    from gs_regional.utils.sh import rgb_to_sh
+
+    n = 300
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.cat([torch.rand(n, 3, generator=gen) * 0.4 + torch.tensor([x, 0.0, 0.0]) for x in (-0.5, 0.5)])
+    rgb = torch.tensor([[0.9, 0.1, 0.1]] * n + [[0.3, 0.4, 0.9]] * n)
+    rgb[n::5] = torch.tensor([0.05, 0.05, 0.4])
+    model = GaussianModel.from_tensors(means=pts, quats=torch.tensor([1.0, 0, 0, 0]).expand(2 * n, 4).clone(),
+                                       log_scales=torch.full((2 * n, 3), -2.5),
+                                       opacity_logits=torch.full((2 * n,), -1.0), sh_dc=rgb_to_sh(rgb))
+    segments = torch.ones(2 * n, dtype=torch.long)
+    segments[:n], segments[n::5] = 0, 2  # red, blue, the thread
+    cams = [look_at((3 * s, 0.3, 3.0), (0.2, 0.2, 0.2), 32, 32) for s in torch.linspace(-0.4, 0.4, 9).tolist()]
+    up = torch.tensor([0.0, 1.0, 0.0])
+    shown = [part_visibility(model, segments == j, cams, up)["shown_fraction"] for j in range(3)]
+    assert shown[0] > 0.8 and shown[1] > 0.8 and shown[2] < 0.1, shown
+
+    subject = types.SimpleNamespace(labels=None, model=model, up=up, segments=lambda: segments,
+                                    camera_list=lambda: cams, part_at=lambda p: "blob")
+    for size, want in ((0.0, 1), (1.0, 0)):  # the smallest (the thread's size) and the largest segment drawn
+        region, _, key, facts = scenes.part_region({"part_size": size}, subject)
+        assert key == f"segment{want}" and torch.equal(region, segments == want), size
+        assert facts["shown_fraction"] >= scenes.MIN_SHOWN
+
+
 def test_segments_of_two_coloured_blobs_are_the_blobs():
     import torch
 
@@ -390,7 +429,7 @@ def test_a_quick_whole_part_case_runs_and_is_reported_apart(tmp_path, capsys):
     assert not r.get("error"), r
     assert r["id"] == case["id"] and r["prompt"] == f"make the {case['part']} {case['color_name']}"
     assert r["part_gaussians"] == r["region_gaussians"] > 0 and r["gaussians_added"] is not None
-    for key in ("side_view_fraction", "hidden_fraction", "view_fraction"):
+    for key in ("side_view_fraction", "hidden_fraction", "view_fraction", "shown_fraction"):
         assert 0 <= r[key] <= 1, key
     assert "whole parts:" in out and "| **whole parts** |" in out and f"| {case['id']} | recolor_part |" in out
     assert "gain >= +8 dB, every whole-part recolour" in out

@@ -246,7 +246,10 @@ def part_visibility(model: GaussianModel, region: torch.Tensor, cameras: Sequenc
     - `hidden_fraction`: 1 - the part's rendered weight in the whole scene / its alpha rendered
       alone, over all cameras: how much of it other Gaussians hide;
     - `view_fraction`: the median, over the cameras that see it, of the fraction of the image the
-      part covers in the scene (weight summed over pixels / pixels)."""
+      part covers in the scene (weight summed over pixels / pixels);
+    - `shown_fraction`: of the part's rendered weight in the scene, the share in pixels where it is
+      more than half of the colour: near 1 for a part the views show as a region of its own, near 0
+      for a colour class threaded through another part's Gaussians (no pixel is mostly it)."""
     from gs_regional.registry import find
 
     renderer = find("torch-rasterizer", kind="renderers")()
@@ -254,12 +257,13 @@ def part_visibility(model: GaussianModel, region: torch.Tensor, cameras: Sequenc
     feature = region.float()[:, None]
     ones = torch.ones(len(part_only), 1)
     centre = model.means.detach()[region].mean(0)
-    seen_w, alone_w, side, fractions = 0.0, 0.0, [], []
+    seen_w, alone_w, shown_w, side, fractions = 0.0, 0.0, 0.0, [], []
     with torch.no_grad():
         for cam in cameras:
-            w = float(renderer.render(model, cam, override_color=feature)["rgb"].sum())
+            cover = renderer.render(model, cam, override_color=feature)["rgb"][..., 0]
+            w = float(cover.sum())
             a = float(renderer.render(part_only, cam, override_color=ones)["rgb"].sum())
-            seen_w, alone_w = seen_w + w, alone_w + a
+            seen_w, alone_w, shown_w = seen_w + w, alone_w + a, shown_w + float(cover[cover > 0.5].sum())
             if w >= 1.0:
                 d = cam.center.float() - centre
                 elev = math.degrees(math.asin(max(-1.0, min(1.0, float(d @ up) / max(float(d.norm()), 1e-12)))))
@@ -269,7 +273,8 @@ def part_visibility(model: GaussianModel, region: torch.Tensor, cameras: Sequenc
     return {"views_seeing": len(side), "views": len(cameras),
             "side_view_fraction": round(sum(side) / len(side), 3) if side else None,
             "hidden_fraction": round(1.0 - seen_w / alone_w, 3) if alone_w > 0 else None,
-            "view_fraction": round(fractions[len(fractions) // 2], 4) if fractions else None}
+            "view_fraction": round(fractions[len(fractions) // 2], 4) if fractions else None,
+            "shown_fraction": round(shown_w / seen_w, 3) if seen_w > 0 else None}
 
 
 # ------------------------------------------------------------------------------------------ edits

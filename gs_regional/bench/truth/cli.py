@@ -41,8 +41,10 @@ On a synthetic scene (half of them) the part is one of the figure's named parts 
 arms) or the ground or the backdrop (sim.scene.part_masks); on the donut and the face (a quarter each) a
 segment of the splat (sim.splat_truth.segment_parts: connected regions of similar colour and position), of
 a size drawn log-uniformly between the smallest (30 Gaussians) and the largest segment, among those the
-cameras see (less than 90 % hidden). Each record holds part_gaussians, side_view_fraction (of the views
-seeing the part, those under 20 degrees over its centre), hidden_fraction and view_fraction; the report
+cameras see (less than 90 % hidden) as a region of their own (at least half of the segment's rendered
+weight where it is most of the pixel: a colour class threaded through another part's Gaussians is no part).
+Each record holds part_gaussians, side_view_fraction (of the views seeing the part, those under 20
+degrees over its centre), hidden_fraction, view_fraction and shown_fraction (that share); the report
 lists these cases apart ("whole parts") and holds every whole-part recolour to >= +8 dB.
 
 Per case it records the footprint PSNR against the truth and what doing nothing scores there

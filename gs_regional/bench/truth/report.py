@@ -138,6 +138,7 @@ PART_DISTRIBUTION = (
     ("part size (Gaussians)", lambda r: r.get("part_gaussians")),
     ("views seeing it from the side or below", lambda r: r.get("side_view_fraction")),
     ("part hidden by others (fraction)", lambda r: r.get("hidden_fraction")),
+    ("part's weight where it is most of the pixel (fraction)", lambda r: r.get("shown_fraction")),
     ("part's share of the image", lambda r: r.get("view_fraction")),
 )
 
@@ -184,14 +185,14 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
     parts = [r for r in records if r["kind"] in PART_KINDS]
     drawn = [r for r in records if r["kind"] not in PART_KINDS]
     if parts and not only:
-        print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | image share | gain dB "
-              "| outside dB | IoU | recolour's error left: unselected / declined / trained |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print("\nwhole parts:\n| case | kind | scene | part | part size | side/below views | hidden | shown | image share "
+              "| gain dB | outside dB | IoU | recolour's error left: unselected / declined / trained |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for r in parts:
             left = " / ".join(sweeps.fmt(r.get(f"recolour_left_{k}")) for k in ("unselected", "declined", "taken"))
             print(f"| {r['id']} | {r['kind']} | {r['scene']} | {r.get('part_key', r.get('part'))} | {r.get('part_gaussians')} | "
                   f"{sweeps.fmt(r.get('side_view_fraction'))} | {sweeps.fmt(r.get('hidden_fraction'))} | "
-                  f"{sweeps.fmt(r.get('view_fraction'))} | {sweeps.fmt(r.get('gain'))} | "
+                  f"{sweeps.fmt(r.get('shown_fraction'))} | {sweeps.fmt(r.get('view_fraction'))} | {sweeps.fmt(r.get('gain'))} | "
                   f"{sweeps.fmt(r.get('psnr_outside_vs_true_edit'))} | {sweeps.fmt(r.get('mask_iou'))} | "
                   f"{left if r['kind'] == 'recolor_part' else ''} |")
     print("\n| metric | n | min | median | max |")

@@ -20,6 +20,9 @@ def scene_missing(scene: str) -> Optional[str]:
     return None
 
 
+WALL_LATERAL = 2.5  # the face scene: parts this many head radii off its vertical axis are the wall (it stands 4-5 behind)
+
+
 class Subject:
     """A scene as the draw's numbers are resolved against it: the splat (`ply`), its cameras
     (splat-truth's data keys), `up`, `front`, the subject's centre and radius (world units) and the object frame
@@ -114,8 +117,12 @@ class Subject:
             return {**self._PART_WORDS, "eyes": "face"}.get(part, part)
         if self.name == "donut":
             return "icing" if float((p - self.center) @ self.up) > -0.1 * self.radius else "dough"
-        height = float((p - self.center) @ self.up) / self.radius
-        return "hair" if height > 0.6 else "face" if height > -0.5 else "chin"
+        # the face: the person within WALL_LATERAL radii of the head's vertical axis, the wall behind beyond
+        d = (p - self.center) / self.radius
+        height = float(d @ self.up)
+        if float((d - height * self.up).norm()) > WALL_LATERAL:
+            return "wall"
+        return "hair" if height > 0.6 else "face" if height > -0.5 else "chin" if height > -1.3 else "sweater"
 
 
 def synthetic_subject(out: str, seed: int, n_cameras: int, size: int) -> Subject:
@@ -278,6 +285,11 @@ MAX_PART_SHARE = 0.9  # nor one holding more than this share of the splat
 
 
 MAX_HIDDEN = 0.9  # a real splat's segment more hidden than this (inside the object) is no part a case picks
+# nor one with less than this share of its rendered weight where it is most of the pixel: a colour class
+# threaded through another part's Gaussians (streaks of a wall's texture, a shade of skin) shows the views
+# no region of its own; its exact 2D masks are near empty and the pixels an editor paints for it are mostly
+# other Gaussians (the fitted face's segments: 0.01-0.72, the donut's 0.3-0.94)
+MIN_SHOWN = 0.5
 PART_TRIES = 20  # segments tried, nearest the drawn size first, before a real splat's case fails
 
 
@@ -286,7 +298,8 @@ def part_region(case: dict, subject: Subject, accept=None):
     None): a named part of the procedural scene (sim.scene.part_masks), or the segment of a real
     splat (segment_parts) whose size is nearest the case's `part_size` quantile of the log sizes
     of its segments (MIN_PART Gaussians up to MAX_PART_SHARE of the splat) among those the cameras
-    see (hidden_fraction <= MAX_HIDDEN) and `accept(mask)` takes."""
+    see (hidden_fraction <= MAX_HIDDEN) as a region of their own (shown_fraction >= MIN_SHOWN) and
+    `accept(mask)` takes."""
     import torch
 
     from gs_regional.sim.splat_truth import part_visibility
@@ -306,11 +319,12 @@ def part_region(case: dict, subject: Subject, accept=None):
     for j in eligible[torch.argsort((sizes - target).abs(), stable=True)][:PART_TRIES].tolist():
         region = seg == j
         seen = part_visibility(subject.model, region, subject.camera_list()[::3], subject.up)  # a third of the views
-        if (seen["hidden_fraction"] or 1.0) > MAX_HIDDEN or (accept is not None and not accept(region)):
+        hidden, shown = seen["hidden_fraction"], seen["shown_fraction"]  # None: no camera sees it
+        if hidden is None or hidden > MAX_HIDDEN or shown < MIN_SHOWN or (accept is not None and not accept(region)):
             continue
         return region, subject.part_at(subject.model.means[region].mean(0)), f"segment{j}", seen
     raise ValueError(f"{subject.name}: none of the {PART_TRIES} segments nearest the drawn size is seen "
-                     f"(hidden <= {MAX_HIDDEN}) and takes the case")
+                     f"(hidden <= {MAX_HIDDEN}, shown >= {MIN_SHOWN}) and takes the case")
 
 
 _PART_CANDIDATES = 64  # an addition's resting point is looked for under this many of the part's tops
