@@ -266,20 +266,23 @@ def test_whole_part_cases_follow_the_draw_and_leave_its_cases_as_drawn(capsys):
     assert after[1:25] == before[1:25] and [json.loads(x) for x in after[25:]] == extra[:2]
 
 
-def _blobs(offset: float, colours, n: int = 150):
+def _blobs(offset: float, colours, n: int = 150, width: float = 0.3, log_scale: float = -4.0,
+           opacity_logit: float = 2.0):
+    """Blobs of `n` Gaussians each, `width` wide, `offset` apart along x, one colour each
+    (`colours`, or one (n, 3) tensor of colours per blob)."""
     import torch
 
     from gs_regional.geometry.gaussian_model import GaussianModel
     from gs_regional.utils.sh import rgb_to_sh
 
     gen = torch.Generator().manual_seed(0)
-    pts = torch.cat([torch.rand(n, 3, generator=gen) * 0.3 + torch.tensor([i * offset, 0.0, 0.0])
+    pts = torch.cat([torch.rand(n, 3, generator=gen) * width + torch.tensor([i * offset, 0.0, 0.0])
                      for i in range(len(colours))])
-    rgb = torch.cat([torch.tensor(c).expand(n, 3) for c in colours])
+    rgb = torch.cat([torch.as_tensor(c, dtype=torch.float32).expand(n, 3) for c in colours])
     m = len(pts)
     return GaussianModel.from_tensors(means=pts, quats=torch.tensor([1.0, 0, 0, 0]).expand(m, 4).clone(),
-                                      log_scales=torch.full((m, 3), -4.0), opacity_logits=torch.full((m,), 2.0),
-                                      sh_dc=rgb_to_sh(rgb))
+                                      log_scales=torch.full((m, 3), log_scale),
+                                      opacity_logits=torch.full((m,), opacity_logit), sh_dc=rgb_to_sh(rgb))
 
 
 def test_a_colour_class_threaded_through_another_part_is_no_part_a_case_picks():
@@ -293,22 +296,16 @@ def test_a_colour_class_threaded_through_another_part_is_no_part_a_case_picks():
     import torch
 
     from gs_regional.bench.truth import scenes
-    from gs_regional.geometry.gaussian_model import GaussianModel
     from gs_regional.sim.scene import look_at
     from gs_regional.sim.splat_truth import part_visibility
-    from gs_regional.utils.sh import rgb_to_sh
 
     n = 300
-    gen = torch.Generator().manual_seed(0)
-    pts = torch.cat([torch.rand(n, 3, generator=gen) * 0.4 + torch.tensor([x, 0.0, 0.0]) for x in (-0.5, 0.5)])
-    rgb = torch.tensor([[0.9, 0.1, 0.1]] * n + [[0.3, 0.4, 0.9]] * n)
-    rgb[n::5] = torch.tensor([0.05, 0.05, 0.4])
-    model = GaussianModel.from_tensors(means=pts, quats=torch.tensor([1.0, 0, 0, 0]).expand(2 * n, 4).clone(),
-                                       log_scales=torch.full((2 * n, 3), -2.5),
-                                       opacity_logits=torch.full((2 * n,), -1.0), sh_dc=rgb_to_sh(rgb))
+    blue = torch.tensor([[0.3, 0.4, 0.9]]).repeat(n, 1)
+    blue[::5] = torch.tensor([0.05, 0.05, 0.4])
+    model = _blobs(1.0, [(0.9, 0.1, 0.1), blue], n, width=0.4, log_scale=-2.5, opacity_logit=-1.0)
     segments = torch.ones(2 * n, dtype=torch.long)
     segments[:n], segments[n::5] = 0, 2  # red, blue, the thread
-    cams = [look_at((3 * s, 0.3, 3.0), (0.2, 0.2, 0.2), 32, 32) for s in torch.linspace(-0.4, 0.4, 9).tolist()]
+    cams = [look_at((3 * s + 0.5, 0.3, 3.0), (0.7, 0.2, 0.2), 32, 32) for s in torch.linspace(-0.4, 0.4, 9).tolist()]
     up = torch.tensor([0.0, 1.0, 0.0])
     shown = [part_visibility(model, segments == j, cams, up)["shown_fraction"] for j in range(3)]
     assert shown[0] > 0.8 and shown[1] > 0.8 and shown[2] < 0.1, shown

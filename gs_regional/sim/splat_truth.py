@@ -250,19 +250,19 @@ def part_visibility(model: GaussianModel, region: torch.Tensor, cameras: Sequenc
     - `shown_fraction`: of the part's rendered weight in the scene, the share in pixels where it is
       more than half of the colour: near 1 for a part the views show as a region of its own, near 0
       for a colour class threaded through another part's Gaussians (no pixel is mostly it)."""
+    from gs_regional.metrics.region import render_selection
     from gs_regional.registry import find
 
     renderer = find("torch-rasterizer", kind="renderers")()
     part_only = model.select(region)
-    feature = region.float()[:, None]
-    ones = torch.ones(len(part_only), 1)
+    whole = torch.ones(len(part_only), dtype=torch.bool)
     centre = model.means.detach()[region].mean(0)
     seen_w, alone_w, shown_w, side, fractions = 0.0, 0.0, 0.0, [], []
     with torch.no_grad():
         for cam in cameras:
-            cover = renderer.render(model, cam, override_color=feature)["rgb"][..., 0]
+            cover = render_selection(model, renderer, cam, region)  # in the scene
             w = float(cover.sum())
-            a = float(renderer.render(part_only, cam, override_color=ones)["rgb"].sum())
+            a = float(render_selection(part_only, renderer, cam, whole).sum())  # alone
             seen_w, alone_w, shown_w = seen_w + w, alone_w + a, shown_w + float(cover[cover > 0.5].sum())
             if w >= 1.0:
                 d = cam.center.float() - centre

@@ -471,10 +471,10 @@ def new_gaussians_from_depth(
                      else (torch.zeros_like(depth, dtype=torch.bool), depth))
 
     def gaussians(cells: tuple) -> tuple:  # (means, colours, log-scales, quats) of one side's cells
-        means, colors, depth, covered, blocks = cells
-        width = (depth / focal * covered.sqrt()).clamp_min(1e-6)  # of the pixels each stands for, at its depth
-        log_scales, quats = covariance_to_scales_quats(surface_covariances(blocks, means, width, camera, cfg.scale_factor))
-        return means, colors, log_scales, quats
+        points, rgb, cell_depth, covered, blocks = cells
+        width = (cell_depth / focal * covered.sqrt()).clamp_min(1e-6)  # of the pixels each stands for, at its depth
+        log_scales, quats = covariance_to_scales_quats(surface_covariances(blocks, points, width, camera, cfg.scale_factor))
+        return points, rgb, log_scales, quats
 
     near_side = merge_cells(pixels, means, pixel_colors, depth, cell)
     report["merged_pixels"] = report["placed_pixels"] - near_side[0].shape[0]
@@ -571,6 +571,7 @@ def surface_covariances(blocks: torch.Tensor, means: torch.Tensor, width: torch.
     normal = torch.linalg.cross(t_u, t_v)
     normal = torch.where(normal.norm(dim=-1, keepdim=True) > 1e-12 * width[:, None] ** 2, normal, rot[:, 2].expand_as(normal))
     normal = normal / normal.norm(dim=-1, keepdim=True)
+
     def outer(a: torch.Tensor) -> torch.Tensor:
         return a[:, :, None] * a[:, None, :]
 
