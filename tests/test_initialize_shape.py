@@ -336,16 +336,57 @@ def _ball_on_the_head():
     return gt, make_cameras(40, 96, 96)[0], centre, r
 
 
+def _placed_in_holes(gt, cams, views, scene_rows: torch.Tensor) -> torch.Tensor:
+    """(K, 3) the means of the Gaussians `new_gaussians_in_holes` places in each of `views` (camera
+    indices) when the scene holds `scene_rows` of `gt.edited` (its first len(gt.source) rows the
+    source's, the rest the true addition's): each view's target is the simulated editor's partial
+    edit of the scene's render, composited, as a refinement cycle makes it, and the other views are
+    the cycle's other edited views."""
+    from gs_regional.metrics.region import render_selection
+    from gs_regional.stages.composite import composite_target
+    from gs_regional.stages.initialize import HOLE_MAX_DISTANCE, new_gaussians_in_holes
+
+    n = len(gt.source)
+    renderer = find("torch-rasterizer")()
+    editor = find("simulated-editor")({"seed": 0})
+    depth = find("simulated-depth")({})
+    editor.attach_ground_truth(gt)
+    depth.attach_ground_truth(gt)
+    scene = gt.edited.select(scene_rows)
+    added_rows = torch.arange(len(scene)) >= n
+    made = []
+    with torch.no_grad():
+        for i in views:
+            cam = cams[i]
+            out = renderer.render(scene, cam)
+            source = renderer.render(gt.source, cam)["rgb"]
+            edited = editor.edit(out["rgb"][None], source[None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
+            added = render_selection(scene, renderer, cam, added_rows)
+            region = render_selection(gt.source, renderer, cam, gt.region)
+            target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"] > 0.5)
+            shows = (target - source).abs().amax(-1) > 2.0 / 255
+            surface = torch.where(out["alpha"] > 0.5, out["depth"], torch.full_like(region, float("inf")))
+            made.append((cam, out, target, shows, added, (region > 0.5) | (added > 0.05), surface))
+        placed = []
+        for k, (cam, out, target, shows, added, region, _) in enumerate(made):
+            other = [v for j, v in enumerate(made) if j != k]
+            current = {"rgb": out["rgb"].clamp(0, 1), "depth": out["depth"], "alpha": out["alpha"]}
+            params = new_gaussians_in_holes(
+                cam, current, target, shows, added, region,
+                depth.disparity(torch.stack([current["rgb"], target]), cameras=[cam, cam]),
+                ([v[0] for v in other], [v[3] for v in other], [v[6] for v in other]), InitConfig(), gt.source.sh_degree,
+                scene.means.detach()[added_rows], HOLE_MAX_DISTANCE)
+            if params:
+                placed.append(params["means"])
+    return torch.cat(placed) if placed else torch.zeros(0, 3)
+
+
 def test_a_cycle_places_the_side_of_an_added_ball_that_the_first_view_did_not_see():
     """An addition the editor draws whole in some views and only partly in the scene: the scene
     holds the true ball's half that faces the first view, and two side views' targets (partial
     edits, composited, as a refinement cycle makes them) draw the whole ball. The Gaussians
     `new_gaussians_in_holes` places lie on the true ball's surface, on the half the scene lacked.
     With the whole ball in the scene there is nothing to place."""
-    from gs_regional.metrics.region import render_selection
-    from gs_regional.stages.composite import composite_target
-    from gs_regional.stages.initialize import HOLE_MAX_DISTANCE, new_gaussians_in_holes
-
     gt, cams, centre, r = _ball_on_the_head()
     n = len(gt.source)
     first = cams[VIEW].center
@@ -355,50 +396,39 @@ def test_a_cycle_places_the_side_of_an_added_ball_that_the_first_view_did_not_se
     side = [i for i, c in enumerate(cams)
             if abs(float(torch.nn.functional.normalize(c.center - centre, dim=0) @ towards_first)) < 0.35][:2]
     assert len(side) == 2
-    renderer = find("torch-rasterizer")()
-    editor = find("simulated-editor")({"seed": 0})
-    depth = find("simulated-depth")({})
-    editor.attach_ground_truth(gt)
-    depth.attach_ground_truth(gt)
-
-    def place(scene_rows: torch.Tensor) -> torch.Tensor:
-        scene = gt.edited.select(scene_rows)
-        added_rows = torch.arange(len(scene)) >= n
-        views = []
-        with torch.no_grad():
-            for i in side:
-                cam = cams[i]
-                out = renderer.render(scene, cam)
-                source = renderer.render(gt.source, cam)["rgb"]
-                edited = editor.edit(out["rgb"][None], source[None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
-                added = render_selection(scene, renderer, cam, added_rows)
-                region = render_selection(gt.source, renderer, cam, gt.region)
-                target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"] > 0.5)
-                shows = (target - source).abs().amax(-1) > 2.0 / 255
-                surface = torch.where(out["alpha"] > 0.5, out["depth"], torch.full_like(region, float("inf")))
-                views.append((cam, out, target, shows, added, (region > 0.5) | (added > 0.05), surface))
-            placed = []
-            for k, (cam, out, target, shows, added, region, _) in enumerate(views):
-                other = [v for j, v in enumerate(views) if j != k]
-                current = {"rgb": out["rgb"].clamp(0, 1), "depth": out["depth"], "alpha": out["alpha"]}
-                params = new_gaussians_in_holes(
-                    cam, current, target, shows, added, region,
-                    depth.disparity(torch.stack([current["rgb"], target]), cameras=[cam, cam]),
-                    ([v[0] for v in other], [v[3] for v in other], [v[6] for v in other]), InitConfig(), gt.source.sh_degree,
-                    scene.means.detach()[added_rows], HOLE_MAX_DISTANCE)
-                if params:
-                    placed.append(params["means"])
-        return torch.cat(placed) if placed else torch.zeros(0, 3)
-
     half = torch.cat([torch.ones(n, dtype=torch.bool), facing])
-    placed = place(half)
+    placed = _placed_in_holes(gt, cams, side, half)
     assert len(placed) >= 5
     off_surface = ((placed - centre).norm(dim=1) - r).abs() / r
     assert float(off_surface.median()) < 0.35
     assert float((off_surface < 0.6).float().mean()) > 0.9
     lacked = (placed - centre) @ towards_first < 0.25 * r  # on the half the scene lacked (or its rim)
     assert float(lacked.float().mean()) > 0.8
-    assert len(place(torch.ones(len(gt.edited), dtype=torch.bool))) == 0
+    assert len(_placed_in_holes(gt, cams, side, torch.ones(len(gt.edited), dtype=torch.bool))) == 0
+
+
+def test_a_cycle_paints_the_half_of_a_flat_addition_the_scene_lacks_onto_the_surface():
+    """An addition that lies on the part (the synthetic moustache on the face: its depth hardly
+    changes) drawn whole by the editor in two frontal views while the scene holds only its half on
+    one side of the face, as a side view's depth placed it. The Gaussians a cycle places
+    (`new_gaussians_in_holes`, its `painted_in_holes`) lie on the other half, on the true
+    moustache (within a twentieth of its width of one of its Gaussians); with the whole moustache
+    in the scene, next to none."""
+    gt = make_edit("add")
+    cams = make_cameras(40, 96, 96)[0]
+    n = len(gt.source)
+    moustache = gt.edited.means.detach()[n:]
+    middle = float(moustache[:, 0].median())
+    kept = moustache[:, 0] > middle
+    frontal = [VIEW, VIEW + 1]
+    placed = _placed_in_holes(gt, cams, frontal, torch.cat([torch.ones(n, dtype=torch.bool), kept]))
+    assert len(placed) >= 10
+    assert float((placed[:, 0] < middle).float().mean()) > 0.8  # the half the scene lacked
+    width = float(moustache[:, 0].max() - moustache[:, 0].min())
+    nearest = torch.cdist(placed, moustache).min(1).values  # (a few hundred rows: a test's all-pairs)
+    assert float((nearest < 0.05 * width).float().mean()) > 0.9
+    whole = _placed_in_holes(gt, cams, frontal, torch.ones(len(gt.edited), dtype=torch.bool))
+    assert len(whole) <= 0.2 * len(placed)
 
 
 def test_the_far_side_of_a_ball_placed_from_one_view_is_its_near_side_mirrored():

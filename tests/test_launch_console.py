@@ -115,7 +115,7 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
     assert rows["ran"].startswith("train regional-edit on synthetic-scene") and "12 steps" in rows["ran"]
     m = json.loads((trial / "save" / "metrics.json").read_text())
     assert rows["Gaussians"] == (f"{m['gaussians_before']:,} before, +{m['count_added_init']:,} from depth, "
-                                 + (f"+{m['count_added_cycles']:,} from the cycles' depth, " if m.get("count_added_cycles") else "")
+                                 + (f"+{m['count_added_cycles']:,} from the cycles' depth and paint, " if m.get("count_added_cycles") else "")
                                  + f"+{m['count_densified']:,} densified"
                                  + (f", -{m['count_pruned']:,} pruned" if m.get("count_pruned") else "")
                                  + f" -> {m['gaussians_after']:,} after")

@@ -100,7 +100,7 @@ def _gaussians(m: Dict[str, Any]) -> str:
         if "count_added_init" in m:
             parts.append(f"+{m['count_added_init']:,} from depth")
         if m.get("count_added_cycles"):
-            parts.append(f"+{m['count_added_cycles']:,} from the cycles' depth")
+            parts.append(f"+{m['count_added_cycles']:,} from the cycles' depth and paint")
         if "count_densified" in m:
             parts.append(f"+{m['count_densified']:,} densified")
         if m.get("count_pruned"):

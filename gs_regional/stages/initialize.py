@@ -470,31 +470,42 @@ def new_gaussians_from_depth(
     far_mask, far = (far_side_depth(pixels, depth, depth / focal) if back and pixels.shape[0]
                      else (torch.zeros_like(depth, dtype=torch.bool), depth))
 
-    def gaussians(cells: tuple) -> tuple:  # (means, colours, log-scales, quats) of one side's cells
-        points, rgb, cell_depth, covered, blocks = cells
-        width = (cell_depth / focal * covered.sqrt()).clamp_min(1e-6)  # of the pixels each stands for, at its depth
-        log_scales, quats = covariance_to_scales_quats(surface_covariances(blocks, points, width, camera, cfg.scale_factor))
-        return points, rgb, log_scales, quats
-
     near_side = merge_cells(pixels, means, pixel_colors, depth, cell)
     report["merged_pixels"] = report["placed_pixels"] - near_side[0].shape[0]
     report["placed_far_side"] = int(far_mask.sum())
-    sides = [gaussians(near_side)]
+    sides = [cell_gaussians(near_side, camera, cfg.scale_factor)]
     if report["placed_far_side"]:  # merged apart from the near side: a cell holds one depth
         behind, far = pixels[far_mask], far[far_mask]
-        sides.append(gaussians(merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell)))
-    means, colors, log_scales, quats = (torch.cat(x) for x in zip(*sides))
+        sides.append(cell_gaussians(merge_cells(behind, unproject(camera, far, behind), pixel_colors[far_mask], far, cell),
+                                    camera, cfg.scale_factor))
+    params = gaussian_params(*(torch.cat(x) for x in zip(*sides)), cfg.opacity, sh_degree)
+    report["added"] = params["means"].shape[0]
+    return params, report, d_new
+
+
+def cell_gaussians(cells: tuple, camera: Camera, scale_factor: float) -> tuple:
+    """(means, colours, log-scales, quats) of Gaussians for `merge_cells`' cells, each as wide as
+    the pixels it stands for at its depth and spread along the surface (`surface_covariances`)."""
+    points, rgb, cell_depth, covered, blocks = cells
+    focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
+    width = (cell_depth / focal * covered.sqrt()).clamp_min(1e-6)
+    log_scales, quats = covariance_to_scales_quats(surface_covariances(blocks, points, width, camera, scale_factor))
+    return points, rgb, log_scales, quats
+
+
+def gaussian_params(means: torch.Tensor, colors: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
+                    opacity: float, sh_degree: int) -> dict:
+    """The parameters of new Gaussians for GaussianModel.append: view-independent `colors` at
+    `opacity`."""
     k = means.shape[0]
-    params = {
+    return {
         "means": means,
         "quats": quats,
         "log_scales": log_scales,
-        "opacity_logits": torch.logit(torch.full((k,), cfg.opacity, device=device)),
+        "opacity_logits": torch.logit(torch.full((k,), opacity, device=means.device)),
         "sh_dc": rgb_to_sh(colors),
-        "sh_rest": torch.zeros(k, (sh_degree + 1) ** 2 - 1, 3, device=device),
+        "sh_rest": torch.zeros(k, (sh_degree + 1) ** 2 - 1, 3, device=means.device),
     }
-    report["added"] = k
-    return params, report, d_new
 
 
 # New Gaussians from a view's depth: at most one per cell of a grid this many cells across the view's
@@ -684,13 +695,78 @@ def new_gaussians_in_holes(
     (its depth changes only where the target draws something nearer), kept where the target's
     change lies a pixel inside the object's missing part (`shows` where `added` < 0.5, eroded: a
     view's target draws the object a pixel or two off, and that offset is its rim) and the other
-    edited views see it as part of the edit (`seen_as_edit`). {} when none."""
-    params, _, _ = new_gaussians_from_depth(
+    edited views see it as part of the edit (`seen_as_edit`); and, where the target changes the
+    colour beyond the editor's noise but its depth shows the surface staying where it is, Gaussians
+    on that surface (`painted_in_holes`). {} when none."""
+    params, report, d_new = new_gaussians_from_depth(
         camera, current["rgb"], target, region, current["depth"], current["alpha"], disparities[0], disparities[1],
         replace(cfg, max_distance=max_distance), sh_degree, region_means=region_means)
-    if not params or not params["means"].shape[0]:
-        return {}
     hole = ~dilate(~(shows & (added < 0.5)), 1)
-    row, col, _, _ = camera.pixels(params["means"])
-    keep = hole[row, col] & seen_as_edit(params["means"], *others)
-    return {name: value[keep] for name, value in params.items()} if bool(keep.any()) else {}
+    if params and params["means"].shape[0]:
+        row, col, _, _ = camera.pixels(params["means"])
+        keep = hole[row, col] & seen_as_edit(params["means"], *others)
+        params = {name: value[keep] for name, value in params.items()}
+    if d_new is not None:
+        # The surface stays (the depth is not nearer by the threshold the depth path places from),
+        # as it does 2 px round: a raised object's rim, drawn a pixel or two off, is not painted round it.
+        flat = current["depth"] / d_new.clamp_min(1e-6) - 1 < report["depth_threshold"]
+        where = shows & (added < 0.5) & ~dilate(~flat, 2) & region
+        painted = painted_in_holes(camera, current, target, where, region, others, cfg, sh_degree, region_means,
+                                   max_distance)
+        if painted:
+            params = {name: torch.cat([params[name], painted[name]]) for name in painted} if params else painted
+    return params if params and params["means"].shape[0] else {}
+
+
+# A point painted onto a surface counts as seen by another view whose rendered depth there lies within
+# this fraction of the point's (seen_as_edit's `tolerance` the other way: in front of the surface by it).
+SURFACE_TOLERANCE = 0.02
+# Points are painted only where the rendered depth of the pixel's 3 x 3 neighbourhood spans less than this
+# many pixel widths (a surface at up to about 75 degrees to the view); a silhouette spans far more.
+SMOOTH_PIXEL_WIDTHS = 8.0
+
+
+def painted_in_holes(
+    camera: Camera,
+    current: dict,  # the current scene's render of the view: "rgb", "depth", "alpha"
+    target: torch.Tensor,  # (H, W, 3) the view's refinement target
+    where: torch.Tensor,  # (H, W) bool: the pixels that may take them (the object's missing part, in the region)
+    region: torch.Tensor,  # (H, W) bool: the 2D region (the editor's noise is measured outside it)
+    others: tuple,  # (cameras, shows, surfaces) of the cycle's other edited views, for `seen_as_edit`
+    cfg: InitConfig,
+    sh_degree: int,
+    region_means: torch.Tensor,
+    max_distance: float,
+) -> dict:
+    """New Gaussians, half a pixel in front of the current surface, for the pixels of `where` that
+    the target changes beyond the editor's noise (`real_change`, its noise measured on the opaque
+    pixels outside the region) and that the other edited views see as part of the edit, within
+    `max_distance` of `region_means`; the target's colours, one per `placement_cell`.
+
+    Why: an object that lies on the part (a moustache on a face) changes the colour but hardly the
+    depth. The first view's depth places only the few pixels it sees raised, on the side it sees,
+    and densification grows from those: the rest, drawn by later cycles' views, had no Gaussian to
+    take it, and a side view's placement left the other half of a moustache out of every view.
+    {} when none."""
+    opaque = current["alpha"] > cfg.alpha_min
+    changed = real_change(target, current["rgb"], opaque & ~dilate(region, cfg.dilate_px), cfg.noise_sigmas)[0] >= 1
+    # Only on a smooth surface: at a silhouette the rendered depth blends the part with what lies
+    # behind it, and a point placed there floats beside the part, seen from other views past its edge.
+    d = current["depth"][None, None]
+    focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
+    step = (F.max_pool2d(d, 3, 1, 1) + F.max_pool2d(-d, 3, 1, 1))[0, 0]  # the depth range of the 3 x 3 pixels
+    smooth = step < SMOOTH_PIXEL_WIDTHS * current["depth"] / focal
+    pixels = (where & opaque & smooth & changed).nonzero()
+    if not pixels.shape[0]:
+        return {}
+    depth = current["depth"][pixels[:, 0], pixels[:, 1]] * (1 - 0.5 / focal)
+    means = unproject(camera, depth, pixels)
+    # On the surface: the other views see it where their own surface lies within that tolerance
+    keep = seen_as_edit(means, *others, tolerance=-SURFACE_TOLERANCE)
+    if region_means is not None and region_means.shape[0]:
+        keep &= near_region(means, region_means, max_distance, pixels_extent(camera, pixels, depth))
+    pixels, depth, means = pixels[keep], depth[keep], means[keep]
+    if not pixels.shape[0]:
+        return {}
+    cells = merge_cells(pixels, means, target[pixels[:, 0], pixels[:, 1]], depth, placement_cell(camera, cfg.stride))
+    return gaussian_params(*cell_gaussians(cells, camera, cfg.scale_factor), cfg.opacity, sh_degree)

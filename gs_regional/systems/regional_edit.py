@@ -331,8 +331,9 @@ class RegionalEdit(EditSystemBase):
     @torch.no_grad()
     def fill_from_cycle_depth(self) -> int:
         """An addition's Gaussians for what this cycle's targets show of the new object and the
-        scene still lacks (`new_gaussians_in_holes`), view by view, each view seeing what the ones
-        before it placed: the first view's depth places only the side of the object it sees.
+        scene still lacks (`new_gaussians_in_holes`: from depth, or painted on the surface where the
+        depth shows no change), view by view, each view seeing what the ones before it placed: the
+        first view's depth places only the side of the object it sees.
         Returns how many were added (metrics.json `count_added_cycles`)."""
         cfg, s, g, scene = self.cfg, self.state, self.geometry, self.scene
         views = list(s.cycle_views)
