@@ -359,12 +359,12 @@ def _placed_in_holes(gt, cams, views, scene_rows: torch.Tensor) -> torch.Tensor:
         for i in views:
             cam = cams[i]
             out = renderer.render(scene, cam)
-            source = renderer.render(gt.source, cam)["rgb"]
-            edited = editor.edit(out["rgb"][None], source[None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
+            source = renderer.render(gt.source, cam)
+            edited = editor.edit(out["rgb"][None], source["rgb"][None], gt.prompt, t_start=350, seed=0, cameras=[cam])[0]
             added = render_selection(scene, renderer, cam, added_rows)
             region = render_selection(gt.source, renderer, cam, gt.region)
-            target = composite_target(edited, source, region, added, opaque=renderer.render(gt.source, cam)["alpha"] > 0.5)
-            shows = (target - source).abs().amax(-1) > 2.0 / 255
+            target = composite_target(edited, source["rgb"], region, added, opaque=source["alpha"] > 0.5)
+            shows = (target - source["rgb"]).abs().amax(-1) > 2.0 / 255
             surface = torch.where(out["alpha"] > 0.5, out["depth"], torch.full_like(region, float("inf")))
             made.append((cam, out, target, shows, added, (region > 0.5) | (added > 0.05), surface))
         placed = []

@@ -701,21 +701,20 @@ def new_gaussians_in_holes(
     params, report, d_new = new_gaussians_from_depth(
         camera, current["rgb"], target, region, current["depth"], current["alpha"], disparities[0], disparities[1],
         replace(cfg, max_distance=max_distance), sh_degree, region_means=region_means)
-    hole = ~dilate(~(shows & (added < 0.5)), 1)
-    if params and params["means"].shape[0]:
-        row, col, _, _ = camera.pixels(params["means"])
-        keep = hole[row, col] & seen_as_edit(params["means"], *others)
-        params = {name: value[keep] for name, value in params.items()}
-    if d_new is not None:
-        # The surface stays (the depth is not nearer by the threshold the depth path places from),
-        # as it does 2 px round: a raised object's rim, drawn a pixel or two off, is not painted round it.
-        flat = current["depth"] / d_new.clamp_min(1e-6) - 1 < report["depth_threshold"]
-        where = shows & (added < 0.5) & ~dilate(~flat, 2) & region
-        painted = painted_in_holes(camera, current, target, where, region, others, cfg, sh_degree, region_means,
-                                   max_distance)
-        if painted:
-            params = {name: torch.cat([params[name], painted[name]]) for name in painted} if params else painted
-    return params if params and params["means"].shape[0] else {}
+    if d_new is None:  # the calibration rejected (or no change of shape): nothing to place or paint on
+        return {}
+    missing = shows & (added < 0.5)
+    row, col, _, _ = camera.pixels(params["means"])
+    keep = ~dilate(~missing, 1)[row, col] & seen_as_edit(params["means"], *others)
+    params = {name: value[keep] for name, value in params.items()}
+    # The surface stays (the depth is not nearer by the threshold the depth path places from), as it
+    # does 2 px round: a raised object's rim, drawn a pixel or two off, is not painted round it.
+    flat = current["depth"] / d_new.clamp_min(1e-6) - 1 < report["depth_threshold"]
+    painted = painted_in_holes(camera, current, target, missing & ~dilate(~flat, 2) & region, region, others, cfg,
+                               sh_degree, region_means, max_distance)
+    if painted:
+        params = {name: torch.cat([value, painted[name]]) for name, value in params.items()}
+    return params if params["means"].shape[0] else {}
 
 
 # A point painted onto a surface counts as seen by another view whose rendered depth there lies within
@@ -749,14 +748,16 @@ def painted_in_holes(
     take it, and a side view's placement left the other half of a moustache out of every view.
     {} when none."""
     opaque = current["alpha"] > cfg.alpha_min
-    changed = real_change(target, current["rgb"], opaque & ~dilate(region, cfg.dilate_px), cfg.noise_sigmas)[0] >= 1
     # Only on a smooth surface: at a silhouette the rendered depth blends the part with what lies
     # behind it, and a point placed there floats beside the part, seen from other views past its edge.
     d = current["depth"][None, None]
     focal = 0.5 * (camera.fx + camera.fy)  # a pixel's width at depth d: d / focal
     step = (F.max_pool2d(d, 3, 1, 1) + F.max_pool2d(-d, 3, 1, 1))[0, 0]  # the depth range of the 3 x 3 pixels
-    smooth = step < SMOOTH_PIXEL_WIDTHS * current["depth"] / focal
-    pixels = (where & opaque & smooth & changed).nonzero()
+    candidates = where & opaque & (step < SMOOTH_PIXEL_WIDTHS * current["depth"] / focal)
+    if not bool(candidates.any()):  # (most views of most cycles: no noise to measure)
+        return {}
+    changed = real_change(target, current["rgb"], opaque & ~dilate(region, cfg.dilate_px), cfg.noise_sigmas)[0] >= 1
+    pixels = (candidates & changed).nonzero()
     if not pixels.shape[0]:
         return {}
     depth = current["depth"][pixels[:, 0], pixels[:, 1]] * (1 - 0.5 / focal)
