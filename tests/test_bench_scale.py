@@ -4,7 +4,8 @@ import subprocess
 import sys
 
 from trial_helpers import ROOT
-STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune", "checkpoint"]
+STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "selection_pieces", "append", "densify_prune",
+          "checkpoint"]
 
 
 def test_bench_scale_quick_writes_json_and_table(tmp_path):

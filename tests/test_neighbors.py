@@ -1,11 +1,12 @@
-"""Voxel-grid kNN and radius queries against brute force, and the localization that uses them."""
+"""Voxel-grid kNN and radius queries against brute force, the connected pieces of a kNN graph against a
+breadth-first search, and the localization that uses them."""
 import math
 
 import pytest
 import torch
 
 from gs_regional.stages.localize import expand_selection, knn_pool, neighbourhoods
-from gs_regional.geometry.neighbors import knn, quantile_box, within_radius
+from gs_regional.geometry.neighbors import components, knn, quantile_box, within_radius
 
 
 def _sq_dists(a, b):
@@ -126,3 +127,52 @@ def test_quantile_box_is_not_stretched_by_a_stray_point():
     lo, hi = quantile_box(stray, 0.02)
     assert torch.all(lo > 0.0) and torch.all(lo < 0.05) and torch.all(hi < 1.0) and torch.all(hi > 0.95)
     assert torch.equal(torch.stack(quantile_box(stray, 0.0)), torch.stack([stray.min(0).values, stray.max(0).values]))
+
+
+def _brute_components(neighbourhood, member):
+    """Each member's smallest reachable member row by breadth-first search (the reference)."""
+    n = member.shape[0]
+    adjacent = [set() for _ in range(n)]
+    for i in range(n):
+        for j in neighbourhood[i].tolist():
+            if member[i] and member[j]:
+                adjacent[i].add(j)
+                adjacent[j].add(i)
+    label = [-1] * n
+    for start in range(n):
+        if member[start] and label[start] < 0:
+            piece, todo = {start}, [start]
+            while todo:
+                for j in adjacent[todo.pop()]:
+                    if j not in piece:
+                        piece.add(j)
+                        todo.append(j)
+            for i in piece:
+                label[i] = min(piece)
+    return torch.tensor(label)
+
+
+@pytest.mark.parametrize("name", ["uniform", "clustered", "duplicates", "few_points"])
+@pytest.mark.parametrize("share", [0.2, 0.5, 1.0])
+def test_components_equal_breadth_first_search(name, share):
+    """The selection's connected pieces over a kNN graph (an edge either way round) equal a
+    breadth-first search's, labelled by their smallest row, non-members -1."""
+    points = _clouds()[name]
+    member = torch.rand(points.shape[0], generator=torch.Generator().manual_seed(1)) < share
+    neighbourhood = knn(points, 4)[1]
+    assert torch.equal(components(neighbourhood, member), _brute_components(neighbourhood, member))
+
+
+def test_components_of_a_chain_join_it_end_to_end():
+    """A chain whose rows are shuffled (each joined to the next only, one way round) is one piece,
+    however long; cut in the middle, two."""
+    order = torch.randperm(3000, generator=torch.Generator().manual_seed(2))
+    neighbourhood = torch.empty(3000, 1, dtype=torch.long)
+    neighbourhood[order[:-1], 0] = order[1:]
+    neighbourhood[order[-1], 0] = order[-1]
+    member = torch.ones(3000, dtype=torch.bool)
+    assert torch.equal(components(neighbourhood, member), torch.zeros(3000, dtype=torch.long))
+    member[order[1500]] = False
+    label = components(neighbourhood, member)
+    assert label[order[1500]] == -1 and len(label[member].unique()) == 2
+    assert (label[order[:1500]] == int(order[:1500].min())).all()

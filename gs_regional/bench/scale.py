@@ -18,6 +18,9 @@ number on a machine shared with other work. Stages:
                  256x256 (--localize-views, --localize-size), 2 reweighting passes (a render per
                  view each), kNN pooling (neighbours found once), the evidence prior, point expansion
                  (radius 1% of the scene extent) and the selection rendered back into the 24 views
+  selection_pieces  a recolour gate's connected pieces of the selection (Recolour.selection_pieces):
+                 16 nearest neighbours of every Gaussian, then neighbors.components of a selection
+                 of half of them (a part that large is the most passes)
   append         depth initialization's append (geometry.rows.append) of N/100 new Gaussians, with
                  Adam state
   densify_prune  one DensifyStrategy.densify_and_prune step over the whole scene (about 2% cloned
@@ -60,7 +63,8 @@ from gs_regional.registry import find
 from gs_regional.sim.scene import look_at
 from gs_regional.systems.regional_edit import LocalizeConfig
 
-STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "append", "densify_prune", "checkpoint"]
+STAGES = ["ply_save", "ply_load", "render_512", "knn_pool", "localize", "selection_pieces", "append", "densify_prune",
+          "checkpoint"]
 DEFAULT_SIZES = [10_000, 100_000, 1_000_000]
 QUICK_SIZES = [10_000, 30_000]
 SCENE_EXTENT = 1.6  # radius of the synthetic scene around the origin
@@ -221,6 +225,15 @@ def run_stage(stage: str, n: int, device: torch.device, renderer_type: str, work
                     selected = expand_selection(means, lifted["selected"], 0.01 * SCENE_EXTENT)
                     for view in lifted["views"]:  # the render-back, from the views' kept weights
                         splat_selection(view, selected)
+    elif stage == "selection_pieces":
+        from gs_regional.geometry.neighbors import components, knn
+        from gs_regional.stages.strategies import GATE_NEIGHBOURS
+
+        means = model.means.detach()
+        selected = means[:, 0] > float(means[:, 0].median())
+
+        def run():
+            components(knn(means, GATE_NEIGHBOURS)[1], selected)
     elif stage in ("append", "densify_prune"):
         opt = torch.optim.Adam(model.optimizer_param_groups(spatial_scale=SCENE_EXTENT))
         for p in model.parameters():

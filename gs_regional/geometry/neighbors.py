@@ -259,3 +259,31 @@ def within_radius(points: torch.Tensor, seeds: torch.Tensor, radius: float, max_
             near[qi] = (_sq_dists_to_candidates(s_columns, p[qi], cell_of_row, seed_blocks) <= r2).any(1)
         open_ = open_[~near[open_]]
     return near
+
+
+def components(neighbourhood: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
+    """(N,) the connected component of each `member` row (bool (N,)) in the graph whose edges join a
+    row to each of its `neighbourhood` rows ((N, k) indices, e.g. `knn`'s) when both are members,
+    either way round: its smallest member row; -1 for the others.
+
+    Each pass hooks every tree's root onto the smallest root across its edges, then points every
+    row straight at its root (pointer jumping): whole trees merge at once, so the passes grow about
+    with log N, each linear in N·k. A label only ever decreases, so no cycle forms."""
+    n = member.shape[0]
+    rows = torch.arange(n, device=member.device)
+    src = rows[:, None].expand_as(neighbourhood)
+    both = member[src] & member[neighbourhood]
+    a, b = src[both], neighbourhood[both]
+    root = rows.clone()
+    while True:
+        hooked = root.clone()
+        hooked.scatter_reduce_(0, root[a], root[b], "amin")
+        hooked.scatter_reduce_(0, root[b], root[a], "amin")
+        while True:
+            jumped = hooked[hooked]
+            if torch.equal(jumped, hooked):
+                break
+            hooked = jumped
+        if torch.equal(hooked, root):
+            return torch.where(member, root, torch.full_like(root, -1))
+        root = hooked

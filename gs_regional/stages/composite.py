@@ -78,6 +78,24 @@ def still_distinct(was: torch.Tensor, colours: torch.Tensor, blend: torch.Tensor
     return was & seen & (blend < full_blend) & ((colours - part[0]).norm(dim=-1) > min_distance)
 
 
+def outlying_pieces(pieces: torch.Tensor, core: torch.Tensor, seen: torch.Tensor, share: float) -> torch.Tensor:
+    """(N,) bool: the selected Gaussians whose connected piece of the selection (`pieces`: each
+    selected row's piece, -1 for the others, `neighbors.components` over their nearest neighbours)
+    has under `share` times the fraction of `core` Gaussians (ones the edit recolours fully) among
+    its `seen` ones that the whole selection has.
+
+    Why: a mask that reaches a pixel past the part selects the rim of what stands in front of it
+    (the top of a head before a recoloured backdrop), a ring of its own in 3D, and the editor's
+    bleed recolours that rim in every view by about as much as the part's own weakly edited edge;
+    a few of the ring's Gaussians, their weight on pixels the bleed covers whole, even fully."""
+    selected = pieces >= 0
+    cores = torch.bincount(pieces[core & selected], minlength=pieces.shape[0]).float()
+    views = torch.bincount(pieces[seen & selected], minlength=pieces.shape[0]).float()
+    overall = float(cores.sum()) / max(float(views.sum()), 1.0)
+    weak = cores < share * overall * views
+    return selected & weak[pieces.clamp_min(0)]
+
+
 # An addition's target takes the edit only where a pixel takes more than half of the new object's
 # colour (`edit_blend`): the half-blend contour is where a symmetric blur (the editor's spill, the
 # antialiasing) leaves the object's true edge; below it the faint added Gaussians that fit the spill

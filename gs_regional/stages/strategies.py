@@ -28,10 +28,10 @@ import torch
 from gs_regional.config import ConfigError, need
 from gs_regional.stages.change import NOISE_SIGMAS, edit_blend
 from gs_regional.stages.composite import (
-    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, part_colours, recoloured,
-    still_distinct,
+    ADDITION_MARGIN_PX, FULL_COVERAGE, MIN_OBJECT_BLEND, composite_target, distinct_parts, outlying_pieces, part_colours,
+    recoloured, still_distinct,
 )
-from gs_regional.geometry import rows
+from gs_regional.geometry import neighbors, rows
 from gs_regional.geometry.strategy import DensifyStrategy
 from gs_regional.metrics.region import SEEN_MIN_WEIGHT, render_selection
 from gs_regional.stages.views import nearest_cameras, spread_subset
@@ -69,6 +69,11 @@ RECOLOURED_PIXEL_FLOOR = 0.05
 # away) stays out of the edit when later cycles widen the part's colours; a part's other shading
 # (0.3-0.4 away), found distinct while the first cycles saw one side, is released.
 STILL_DISTINCT = 0.5
+# A connected piece of a recolour's selection (each Gaussian joined to its GATE_NEIGHBOURS nearest)
+# whose share of fully recoloured Gaussians is under OUTLYING_PIECE_SHARE times the whole selection's
+# is no part of the part (`outlying_pieces`): the rim of what stands in front of it.
+GATE_NEIGHBOURS = 16
+OUTLYING_PIECE_SHARE = 0.5
 
 # A later cycle of a recolour starts at the training view in which the selected Gaussians no
 # edited view has seen well yet (`Recolour.poorly_seen`) cover the most, when they cover at least
@@ -306,6 +311,7 @@ class Recolour(EditStrategy):
         self.was_distinct: Optional[torch.Tensor] = None  # (N,) found a part of its own in an earlier cycle
         self.unedited_cycles: List[int] = []  # the later cycles that went where the part was still unedited
         self.best_weights: Optional[torch.Tensor] = None  # (N,) each row's weight in the view that sees it best
+        self.pieces: Optional[torch.Tensor] = None  # (N,) the selection's connected pieces (`selection_pieces`)
 
     @torch.no_grad()
     def poorly_seen(self, system, seen: torch.Tensor) -> torch.Tensor:
@@ -409,6 +415,9 @@ class Recolour(EditStrategy):
         if part is not None:
             distinct = distinct_parts(colours, blend, seen, DISTINCT_PART_BLEND, part=part) | still_distinct(
                 self.was_distinct, colours, blend, seen, DISTINCT_PART_BLEND, part, STILL_DISTINCT)
+            # the rim of what stands in front of the part, selected with it, is a piece of its own
+            distinct |= seen & outlying_pieces(self.selection_pieces(g, selected), seen & (blend >= DISTINCT_PART_BLEND),
+                                               seen, OUTLYING_PIECE_SHARE)
         self.was_distinct |= distinct
         takes &= ~distinct
         system.counts["recolour_distinct"] = int(distinct.sum())
@@ -420,6 +429,15 @@ class Recolour(EditStrategy):
             # the part this cycle edits for the first time: its colours land on the targets at once
             colour_step(g, takes & self.poorly_seen(system, seen_before), weights, s.cycle_targets,
                         [system.render_view(j)["rgb"] for j in s.cycle_views])
+
+    def selection_pieces(self, geometry, selected: torch.Tensor) -> torch.Tensor:
+        """(N,) the connected piece of the selection each selected row lies in, over each Gaussian's
+        GATE_NEIGHBOURS nearest (`neighbors.components`; -1 for the others): found once, as a
+        recolour keeps its geometry and its selection."""
+        if self.pieces is None or self.pieces.shape[0] != geometry.num_gaussians:
+            neighbourhood = neighbors.knn(geometry.means.detach(), GATE_NEIGHBOURS)[1]
+            self.pieces = neighbors.components(neighbourhood, selected)
+        return self.pieces
 
     def add_cycle_votes(self, votes: torch.Tensor) -> None:
         """Add a cycle's gate votes (2, N: Σ_views gather(edit_blend) and the views' rendering weights)
@@ -454,6 +472,8 @@ class Recolour(EditStrategy):
     def to(self, device) -> "Recolour":
         if self.best_weights is not None:
             self.best_weights = self.best_weights.to(device)
+        if self.pieces is not None:
+            self.pieces = self.pieces.to(device)
         if self.blend_votes is not None:
             self.blend_votes = self.blend_votes.to(device)
         if self.recent_votes is not None:
