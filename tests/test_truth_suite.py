@@ -321,7 +321,8 @@ def test_a_colour_class_threaded_through_another_part_is_no_part_a_case_picks():
 def test_segments_of_two_coloured_blobs_are_the_blobs():
     import torch
 
-    from gs_regional.sim.splat_truth import connected_components, segment_parts
+    from gs_regional.geometry.neighbors import connected_components
+    from gs_regional.sim.splat_truth import segment_parts
 
     # apart and of different colours; touching, told apart by colour alone; apart, of one colour
     for offset, colours in ((3.0, [(0.9, 0.1, 0.1), (0.1, 0.2, 0.9)]), (0.3, [(0.9, 0.1, 0.1), (0.1, 0.2, 0.9)]),

@@ -261,29 +261,33 @@ def within_radius(points: torch.Tensor, seeds: torch.Tensor, radius: float, max_
     return near
 
 
+def connected_components(n: int, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+    """(n,) component label of each node of the undirected graph with edges (src, dst): the
+    smallest node id of its component. Union-find as array rounds: every edge hooks the larger of
+    its two roots onto the smaller (scatter-min on the roots), then pointer jumping flattens the
+    trees; O(E) per round, about log(n) rounds, no Python loop over nodes or edges."""
+    labels = torch.arange(n, device=src.device)
+    if src.numel() == 0:
+        return labels
+    while True:
+        a, b = labels[src], labels[dst]
+        m = torch.minimum(a, b)
+        new = labels.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+        while True:  # pointer jumping: a node's label is a node of its component with a smaller id
+            jumped = new[new]
+            if torch.equal(jumped, new):
+                break
+            new = jumped
+        if torch.equal(new, labels):
+            return labels
+        labels = new
+
+
 def components(neighbourhood: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
     """(N,) the connected component of each `member` row (bool (N,)) in the graph whose edges join a
     row to each of its `neighbourhood` rows ((N, k) indices, e.g. `knn`'s) when both are members,
-    either way round: its smallest member row; -1 for the others.
-
-    Each pass hooks every tree's root onto the smallest root across its edges, then points every
-    row straight at its root (pointer jumping): whole trees merge at once, so the passes grow about
-    with log N, each linear in N·k. A label only ever decreases, so no cycle forms."""
-    n = member.shape[0]
-    rows = torch.arange(n, device=member.device)
-    src = rows[:, None].expand_as(neighbourhood)
+    either way round (`connected_components`): its smallest member row; -1 for the others."""
+    src = torch.arange(member.shape[0], device=member.device)[:, None].expand_as(neighbourhood)
     both = member[src] & member[neighbourhood]
-    a, b = src[both], neighbourhood[both]
-    root = rows.clone()
-    while True:
-        hooked = root.clone()
-        hooked.scatter_reduce_(0, root[a], root[b], "amin")
-        hooked.scatter_reduce_(0, root[b], root[a], "amin")
-        while True:
-            jumped = hooked[hooked]
-            if torch.equal(jumped, hooked):
-                break
-            hooked = jumped
-        if torch.equal(hooked, root):
-            return torch.where(member, root, torch.full_like(root, -1))
-        root = hooked
+    label = connected_components(member.shape[0], src[both], neighbourhood[both])
+    return torch.where(member, label, torch.full_like(label, -1))

@@ -40,7 +40,7 @@ from gs_regional.data.datamodule import SceneDataModuleBase
 from gs_regional.data.loaders import load_cameras
 from gs_regional.data.scene import SceneData, split_every
 from gs_regional.geometry.gaussian_model import GaussianModel
-from gs_regional.geometry.neighbors import knn, quantile_box
+from gs_regional.geometry.neighbors import connected_components, knn, quantile_box
 from gs_regional.registry import register
 from gs_regional.sim.scene import _Ellipsoid, _sample_ellipsoid, look_at
 from gs_regional.sim.truth import GroundTruth
@@ -157,28 +157,6 @@ def select_file(model: GaussianModel, path: str) -> Tuple[torch.Tensor, torch.Te
 
 
 # ------------------------------------------------------------------------------------- whole parts
-def connected_components(n: int, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
-    """(n,) component label of each node of the undirected graph with edges (src, dst): the
-    smallest node id of its component. Union-find as array rounds: every edge hooks the larger of
-    its two roots onto the smaller (scatter-min on the roots), then pointer jumping flattens the
-    trees; O(E) per round, about log(n) rounds, no Python loop over nodes or edges."""
-    labels = torch.arange(n)
-    if src.numel() == 0:
-        return labels
-    while True:
-        a, b = labels[src], labels[dst]
-        m = torch.minimum(a, b)
-        new = labels.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
-        while True:  # pointer jumping: a node's label is a node of its component with a smaller id
-            jumped = new[new]
-            if torch.equal(jumped, new):
-                break
-            new = jumped
-        if torch.equal(new, labels):
-            return labels
-        labels = new
-
-
 def _colour_classes(rgb: torch.Tensor, n_classes: int, iters: int = 20) -> torch.Tensor:
     """(N,) class of each colour: k-means in RGB, started from colours spread along the luma
     order (deterministic)."""
