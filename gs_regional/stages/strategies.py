@@ -12,7 +12,7 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 * `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
 * `densify`: the densification strategy of refinement (None: no Gaussian added);
 * `after_edits(system)`: what follows each cycle's edits (the recolour's gate, its pixel weights for
-  training and its colour step on a side edited for the first time; the addition's fill from the
+  training and its colour step where the cycle's steps fall short; the addition's fill from the
   cycle's depth);
 * `finish(system)`: the last word after refinement;
 * `state_dict()` / `load_state_dict()` / `to(device)`: what it keeps in a checkpoint.
@@ -74,6 +74,11 @@ STILL_DISTINCT = 0.5
 # is no part of the part (`outlying_pieces`): the rim of what stands in front of it.
 GATE_NEIGHBOURS = 16
 OUTLYING_PIECE_SHARE = 0.5
+# A Gaussian inside those the recolour gate lets train, recoloured fully (its blend at least
+# FULLY_RECOLOURED), that a cycle's views see less than LITTLE_SEEN times the median of those gets
+# its colours from the cycle's targets in one step (`Recolour.little_seen_inside`).
+LITTLE_SEEN = 1.0
+FULLY_RECOLOURED = 0.85
 
 # A later cycle of a recolour starts at the training view in which the selected Gaussians no
 # edited view has seen well yet (`Recolour.poorly_seen`) cover the most, when they cover at least
@@ -276,21 +281,23 @@ class EditStrategy:
 
 
 @torch.no_grad()
-def colour_step(geometry, rows_: torch.Tensor, views: List[Any], targets: torch.Tensor, renders: List[torch.Tensor]) -> None:
+def colour_step(geometry, rows_: torch.Tensor, views: List[Any], targets: torch.Tensor, renders: List[torch.Tensor],
+                recoloured: Optional[torch.Tensor] = None) -> None:
     """Move the base colour of each of `rows_` by the mean, over its pixels in `views` (their
     `PixelWeights`) weighted by its compositing weight there, of what the `targets` still ask of the
-    `renders`: one Jacobi step of the colours towards the targets. Where trained rows cover a
-    pixel whole the step lands on its target; where they share it with rows that do not train it
-    falls short, never past. Why: a side of the part that a cycle edits for the first time (a
-    recolour's later cycle, where the part is still unedited) needs its colours moved further than
-    the cycle's Adam steps can take them (at most the rate a step: 0.38 in RGB over the truth
-    suite's 60 steps at the colour rate). Only there: applied in every cycle, the rim the gate
-    takes jumps to the editor's spill, the next cycle's partial edit keeps it and the gate keeps
-    taking it (the demo recolour lost 1.8 dB in its footprint, 5 dB outside)."""
+    `renders`, each pixel's ask scaled by how much the editor recoloured it (`recoloured`, (V, H, W)
+    in [0, 1]: a recolour's `edit_blend`; None: wholly): one Jacobi step of the colours towards
+    the targets. Where trained rows cover a pixel whole the step lands on its target; where they
+    share it with rows that do not train, or the editor recoloured it in part, it falls short,
+    never past. Why: a cycle's Adam steps move a colour at most the rate a step (0.38 in RGB over
+    the truth suite's 60 steps at the colour rate), and a Gaussian that a share p of the cycle's
+    steps see about sqrt(p) as fast; too little for a side the cycle edits for the first time or a
+    part its views see little (`Recolour.after_edits`)."""
     num = torch.zeros(geometry.num_gaussians, 3, device=geometry.means.device)
     den = torch.zeros(geometry.num_gaussians, device=geometry.means.device)
-    for view, target, render in zip(views, targets, renders):
-        num += view.gather(target.to(render) - render.detach())
+    for k, (view, target, render) in enumerate(zip(views, targets, renders)):
+        ask = target.to(render) - render.detach()
+        num += view.gather(ask if recoloured is None else ask * recoloured[k].to(render)[..., None])
         den += view.totals(*render.shape[:-1], render.device)
     step = rows_ & (den >= SEEN_MIN_WEIGHT)
     geometry.sh_dc.data[step] += num[step] / den[step, None] / SH_C0
@@ -311,6 +318,7 @@ class Recolour(EditStrategy):
         self.was_distinct: Optional[torch.Tensor] = None  # (N,) found a part of its own in an earlier cycle
         self.unedited_cycles: List[int] = []  # the later cycles that went where the part was still unedited
         self.best_weights: Optional[torch.Tensor] = None  # (N,) each row's weight in the view that sees it best
+        self.neighbourhood: Optional[torch.Tensor] = None  # (N, GATE_NEIGHBOURS) each row's nearest (`neighbours`)
         self.pieces: Optional[torch.Tensor] = None  # (N,) the selection's connected pieces (`selection_pieces`)
 
     @torch.no_grad()
@@ -385,9 +393,11 @@ class Recolour(EditStrategy):
         the latest's), or that are a part of their own (DISTINCT_PART_BLEND), go back to
         their source colours and stop training; one whose views later recolour it trains again.
         The cycle's targets train with each pixel weighted by the edit's blend there
-        (RECOLOURED_PIXEL_FLOOR). Two gathers per view of this cycle. In a cycle that went where the
-        part was still unedited, the Gaussians it takes that no earlier edited view saw get their
-        colours from its targets (`colour_step`: a render and a gather more per view)."""
+        (RECOLOURED_PIXEL_FLOOR). Two gathers per view of this cycle. The Gaussians it takes that its
+        steps would leave short get their colours from its targets (`colour_step`: a render and two
+        gathers more per view): inside what trains, those recoloured fully that its views see little
+        (`little_seen_inside`); in a cycle that went where the part was still unedited, those no
+        earlier edited view saw well."""
         if not self.regional or self.cfg.min_edit_blend <= 0:
             return
         g, s = system.geometry, system.state
@@ -425,18 +435,48 @@ class Recolour(EditStrategy):
         g.mask.copy_(takes)
         system.counts["recolour_declined"] = int((selected & ~takes).sum())
         system.counts["recolour_taken"] = int((seen & takes).sum())
+        # Colours the cycle's steps would leave short land on its targets at once: the inside of
+        # what trains, recoloured fully, that its views see little, and the part this cycle edits
+        # for the first time.
+        step = self.little_seen_inside(g, takes, blend, votes[1], seen)
         if s.targets_cycle in self.unedited_cycles:
-            # the part this cycle edits for the first time: its colours land on the targets at once
-            colour_step(g, takes & self.poorly_seen(system, seen_before), weights, s.cycle_targets,
-                        [system.render_view(j)["rgb"] for j in s.cycle_views])
+            step |= takes & self.poorly_seen(system, seen_before)
+        if bool(step.any()):
+            colour_step(g, step, weights, s.cycle_targets, [system.render_view(j)["rgb"] for j in s.cycle_views],
+                        torch.stack(blends))
+
+    def little_seen_inside(self, geometry, takes: torch.Tensor, blend: torch.Tensor, cycle_seen: torch.Tensor,
+                           judged: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the rows the gate lets train (`takes`) whose GATE_NEIGHBOURS nearest it lets
+        train too (not the rim of what trains, where the editor's spill lands), that the edited
+        views recolour fully (the gate's `blend` >= FULLY_RECOLOURED) and that the cycle's views
+        see less (`cycle_seen`: their rendering weight summed, in pixels) than LITTLE_SEEN times the
+        median of the `judged` rows that train. Why: the cycle's steps move those colours the least
+        (`colour_step`): a backdrop's Gaussians that the training views see little (under 8 px in
+        all) kept a median 60 % of their change undone. The well-seen ones train to their targets by
+        themselves. Stepped at once, a part that takes the editor's spill (a nose coloured like the
+        recoloured head) took it whole, and so did the band of the selection past the part: inside
+        the selection rather than inside what trains, a ball's neighbours lost up to 6 dB outside,
+        and Gaussians recoloured in part, hidden under a recoloured surface, took its colour."""
+        taken = takes & judged
+        if not bool(taken.any()):
+            return torch.zeros_like(takes)
+        inside = takes & takes[self.neighbours(geometry)].all(-1) & (blend >= FULLY_RECOLOURED)
+        return inside & (cycle_seen < LITTLE_SEEN * cycle_seen[taken].median())
+
+    def neighbours(self, geometry) -> torch.Tensor:
+        """(N, GATE_NEIGHBOURS) each row's nearest rows (`neighbors.knn`): found once, as a recolour
+        keeps its geometry."""
+        if self.neighbourhood is None or self.neighbourhood.shape[0] != geometry.num_gaussians:
+            self.neighbourhood = neighbors.knn(geometry.means.detach(), GATE_NEIGHBOURS)[1]
+        return self.neighbourhood
 
     def selection_pieces(self, geometry, selected: torch.Tensor) -> torch.Tensor:
         """(N,) the connected piece of the selection each selected row lies in, over each Gaussian's
         GATE_NEIGHBOURS nearest (`neighbors.components`; -1 for the others): found once, as a
         recolour keeps its geometry and its selection."""
         if self.pieces is None or self.pieces.shape[0] != geometry.num_gaussians:
-            neighbourhood = neighbors.knn(geometry.means.detach(), GATE_NEIGHBOURS)[1]
-            self.pieces = neighbors.components(neighbourhood, selected)
+            self.pieces = neighbors.components(self.neighbours(geometry), selected)
         return self.pieces
 
     def add_cycle_votes(self, votes: torch.Tensor) -> None:
@@ -474,6 +514,8 @@ class Recolour(EditStrategy):
             self.best_weights = self.best_weights.to(device)
         if self.pieces is not None:
             self.pieces = self.pieces.to(device)
+        if self.neighbourhood is not None:
+            self.neighbourhood = self.neighbourhood.to(device)
         if self.blend_votes is not None:
             self.blend_votes = self.blend_votes.to(device)
         if self.recent_votes is not None:
