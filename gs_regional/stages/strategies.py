@@ -510,18 +510,9 @@ class Recolour(EditStrategy):
         self.unedited_cycles = list(state.get("unedited_cycles") or [])
 
     def to(self, device) -> "Recolour":
-        if self.best_weights is not None:
-            self.best_weights = self.best_weights.to(device)
-        if self.pieces is not None:
-            self.pieces = self.pieces.to(device)
-        if self.neighbourhood is not None:
-            self.neighbourhood = self.neighbourhood.to(device)
-        if self.blend_votes is not None:
-            self.blend_votes = self.blend_votes.to(device)
-        if self.recent_votes is not None:
-            self.recent_votes = self.recent_votes.to(device)
-        if self.was_distinct is not None:
-            self.was_distinct = self.was_distinct.to(device)
+        for name in ("best_weights", "pieces", "neighbourhood", "blend_votes", "recent_votes", "was_distinct"):
+            if getattr(self, name) is not None:
+                setattr(self, name, getattr(self, name).to(device))
         return self
 
 
