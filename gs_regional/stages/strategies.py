@@ -410,7 +410,8 @@ class Recolour(EditStrategy):
         fresh = self.blend_votes is None or self.blend_votes.shape != votes.shape
         seen_before = torch.zeros_like(votes[1]) if fresh else self.blend_votes[1].clone()  # by the earlier cycles' views
         self.add_cycle_votes(votes)
-        s.cycle_weights = RECOLOURED_PIXEL_FLOOR + torch.stack(blends)  # the cycle trains on what its views recolour
+        blends = torch.stack(blends)
+        s.cycle_weights = RECOLOURED_PIXEL_FLOOR + blends  # the cycle trains on what its views recolour
         num, den = self.recent_votes
         src = g.source_index
         selected = rows.of_source(g, s.source_selection)
@@ -442,8 +443,7 @@ class Recolour(EditStrategy):
         if s.targets_cycle in self.unedited_cycles:
             step |= takes & self.poorly_seen(system, seen_before)
         if bool(step.any()):
-            colour_step(g, step, weights, s.cycle_targets, [system.render_view(j)["rgb"] for j in s.cycle_views],
-                        torch.stack(blends))
+            colour_step(g, step, weights, s.cycle_targets, [system.render_view(j)["rgb"] for j in s.cycle_views], blends)
 
     def little_seen_inside(self, geometry, takes: torch.Tensor, blend: torch.Tensor, cycle_seen: torch.Tensor,
                            judged: torch.Tensor) -> torch.Tensor:
