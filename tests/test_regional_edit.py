@@ -324,7 +324,8 @@ def test_same_seed_same_result(runs):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
-@pytest.mark.parametrize("stop_at", [4, 6])  # between cycles, and mid-cycle
+# Mid-cycle (a stop between cycles resumes as a kill there does: tests/test_reliability.py).
+@pytest.mark.parametrize("stop_at", [6])
 def test_resume_inside_refine_gives_the_same_scene(runs, stop_at):
     full = ply_arrays(Path(get_run(runs, "regional")) / "save" / "edited.ply")
     name = f"resume{stop_at}"
@@ -623,31 +624,30 @@ def test_longer_refinement_densifies_no_more_often(tmp_path):
     targets disagree from view to view, so each extra round clones Gaussians where they disagree
     (more Gaussians added, a worse scene outside the true footprint). An edit densifies once a
     cycle: on the small demo, twice the steps add about as many Gaussians and lose nothing outside
-    the footprint, while a schedule of every 2 steps more than doubles them."""
+    the footprint (a schedule of every 2 steps more than doubled them)."""
     scene = ["system.refine.m=4", "system.densify.every=null"]
     results = {}
     for name, extra in [("default", ["system.refine.iterations_per_cycle=5"]),
-                        ("doubled", ["system.refine.iterations_per_cycle=10"]),
-                        ("doubled_every2", ["system.refine.iterations_per_cycle=10", "system.densify.every=2"])]:
+                        ("doubled", ["system.refine.iterations_per_cycle=10"])]:
         results[name] = metrics_of(launch(tmp_path, name, *scene, *extra))
-    base, doubled, old = results["default"], results["doubled"], results["doubled_every2"]
+    base, doubled = results["default"], results["doubled"]
     assert base["count_densified"] > 20  # the scene densifies at all
     assert doubled["count_densified"] <= 1.5 * base["count_densified"], (base["count_densified"], doubled["count_densified"])
-    assert old["count_densified"] >= 2 * base["count_densified"]
     assert doubled["psnr_outside_vs_true_edit"] >= base["psnr_outside_vs_true_edit"] - 0.3
 
 
 def test_a_longer_cycle_moves_the_added_gaussians_no_further(tmp_path, monkeypatch):
     """The views' targets disagree (each draws the object a little elsewhere); at full rates a cycle
     of 4x the steps carries the added Gaussians about 4x as far after that disagreement (off the
-    object, into the scene outside it). `refine.rate_iterations` keeps a cycle's travel: 4x the steps
-    at a quarter of the rates move them about as far as the normal cycle. (Densification and the
-    last prune off, so that each row initialization added can be followed to the end.)"""
+    object, into the scene outside it: over twice as far as the normal cycle on this scene).
+    `refine.rate_iterations` keeps a cycle's travel: 4x the steps at a quarter of the rates move them
+    about as far as the normal cycle. (Densification and the last prune off, so that each row
+    initialization added can be followed to the end.)"""
     from gs_regional.systems.regional_edit import RegionalEdit
 
     start, end, rates = {}, {}, {}
     initialize, finish = RegionalEdit.run_initialize, RegionalEdit.finish_refinement
-    runs = {"normal": (6, 6), "4x": (24, 6), "4x_full_rates": (24, 24)}  # iterations, rate_iterations
+    runs = {"normal": (6, 6), "4x": (24, 6)}  # iterations, rate_iterations
     tag_of = {v: k for k, v in runs.items()}
 
     def recording_initialize(self):
@@ -672,9 +672,7 @@ def test_a_longer_cycle_moves_the_added_gaussians_no_further(tmp_path, monkeypat
     assert all(len(start[tag]) >= 5 for tag in runs), {tag: len(start[tag]) for tag in runs}  # depth added them
     assert rates["4x"]["means"] == pytest.approx(rates["normal"]["means"] / 4)
     assert rates["4x"]["sh_dc"] == pytest.approx(rates["normal"]["sh_dc"] / 4)
-    assert rates["4x_full_rates"]["means"] == pytest.approx(rates["normal"]["means"])
     print("median travel of the added Gaussians:", travel)
-    assert travel["4x_full_rates"] > 2 * travel["normal"], travel
     assert travel["4x"] < 1.5 * travel["normal"], travel
 
 
