@@ -43,6 +43,14 @@ def test_stop_after_localize_writes_the_localization_figures_and_the_source_unch
     assert (b["selected"] - fp) / b["selected"] == pytest.approx(m["mask_precision"], abs=1e-9)
     assert (b["truth"] - miss) / b["truth"] == pytest.approx(m["mask_recall"], abs=1e-9)
     assert 0 <= b["straddlers"]["truth"] <= b["straddlers"]["all"] <= b["selected"]
+    # --exact: the same of the exact masks' lift, whose counts give back the run's figures from them;
+    # the truth shows more inside its own masks than what they take with it
+    e = breakdown(str(trial), exact=True)
+    for group in ("false_positives", "misses"):
+        assert sum(e[group][k] for k in ("unseen", "covered", "partly", "pooled")) == e[group]["all"]
+    assert (e["selected"] - e["false_positives"]["all"]) / e["selected"] == pytest.approx(m["mask_precision_exact_masks"], abs=1e-9)
+    assert (e["truth"] - e["misses"]["all"]) / e["truth"] == pytest.approx(m["mask_recall_exact_masks"], abs=1e-9)
+    assert e["inside_px"]["truth"] > e["inside_px"]["false_positives"] >= 0
 
 
 def test_a_checkpoint_written_with_a_retired_setting_stops_the_resume_with_one_line():

@@ -9,10 +9,11 @@ also lifted grown by PX pixels ("grown"): what masks that reach that far past th
 as relevance maps from coarse latents do. With `--breakdown`, instead, where
 each run's selection departs from the truth (`breakdown`): whether its false positives were covered
 by the masks whole, in part or selected by their neighbours, and how many selected Gaussians
-straddle the masks' edge.
+straddle the masks' edge; `--exact` breaks down the exact 2D masks' lift the same way (what even
+perfect masks cannot tell apart).
 
     python scripts/relift.py OUT_OR_TRIAL [--edge-ratios 0 0.5] [--thresholds 0.3 0.4 0.5 0.6 0.7 0.8 0.9] [--grow 1]
-    python scripts/relift.py OUT_OR_TRIAL --breakdown
+    python scripts/relift.py OUT_OR_TRIAL --breakdown [--exact]
 
 No editor runs: a 32-case draw re-lifts in under a minute on 2 cores (about two with 7 thresholds).
 """
@@ -93,26 +94,38 @@ STRADDLE_MIN_PX = 1.0
 STRADDLE_SHARES = (0.2, 0.8)
 
 
-def breakdown(trial: str) -> dict:
+def breakdown(trial: str, exact: bool = False) -> dict:
     """Where a trial's selection departs from the truth, from its saved 2D masks: its false positives
     (selected, not the truth's) and misses (the truth's, not selected) by the share of their own
     rendering weight the masks cover, before neighbour pooling: "unseen" (no view sees them; they
     took their neighbours' score), "covered" (at least the upper STRADDLE_SHARES inside), "partly"
     (from half), "pooled" (under half: the neighbours' votes decided); and the straddlers
     (selected, STRADDLE_MIN_PX or more on each side, their share inside within STRADDLE_SHARES),
-    with how many are the truth's. Counts of Gaussians."""
+    with how many are the truth's. Counts of Gaussians; and the rendering weight (pixels, summed
+    over the views) inside the masks of the false positives and of the truth ("inside_px").
+    `exact`: the same of the exact 2D masks' lift (the trial's lift of its known region's render):
+    what no mask can tell apart."""
     import torch
 
-    from gs_regional.metrics.region import SEEN_MIN_WEIGHT
-    from gs_regional.stages.localize import mask_votes, view_weights
+    from gs_regional.config import parse_structured
+    from gs_regional.metrics.region import SEEN_MIN_WEIGHT, splat_selection
+    from gs_regional.stages.localize import LocalizeConfig, localize_gaussians, mask_votes, view_weights
 
-    _, gt, saved, renderer, cameras = saved_lift(trial)
+    cfg, gt, saved, renderer, cameras = saved_lift(trial)
     with torch.no_grad():
         views = view_weights(gt.source, renderer, cameras)
-        num, den = mask_votes(views, [torch.from_numpy(m) for m in saved["masks"]])
-    inside, total = num.sum(0), den.sum(0)
+        if exact:
+            masks = [splat_selection(v, gt.region) > 0.5 for v in views]
+            lc = parse_structured(LocalizeConfig, cfg.system.get("localization", {}), where="system.localization")
+            images = torch.stack([renderer.render(gt.source, cam)["rgb"].clamp(0, 1) for cam in cameras])
+            selected = localize_gaussians(gt.source, renderer, cameras, masks, images=images, **lc.lift())["selected"].cpu()
+        else:
+            masks = [torch.from_numpy(m) for m in saved["masks"]]
+            selected = torch.from_numpy(saved["selected"]).bool()
+        num, den = mask_votes(views, masks)
+    inside, total = num.sum(0).cpu(), den.sum(0).cpu()
     share = torch.where(total > 0, inside / total.clamp_min(1e-12), torch.zeros_like(total))
-    selected, truth = torch.from_numpy(saved["selected"]).bool(), gt.region.cpu().bool()
+    truth = gt.region.cpu().bool()
     unseen = total < SEEN_MIN_WEIGHT
     low, high = STRADDLE_SHARES
 
@@ -125,7 +138,8 @@ def breakdown(trial: str) -> dict:
                 & (share > low) & (share < high))
     return {"false_positives": why(selected & ~truth), "misses": why(~selected & truth),
             "straddlers": {"all": int(straddle.sum()), "truth": int((straddle & truth).sum())},
-            "selected": int(selected.sum()), "truth": int(truth.sum())}
+            "selected": int(selected.sum()), "truth": int(truth.sum()),
+            "inside_px": {"false_positives": float(inside[selected & ~truth].sum()), "truth": float(inside[truth].sum())}}
 
 
 def main(argv=None) -> int:
@@ -140,12 +154,14 @@ def main(argv=None) -> int:
     ap.add_argument("--breakdown", action="store_true",
                     help="instead: where each run's selection departs from the truth (false positives and misses "
                          "by the share of their rendering weight the masks cover; straddlers)")
+    ap.add_argument("--exact", action="store_true",
+                    help="with --breakdown: of the exact 2D masks' lift instead of the saved masks'")
     args = ap.parse_args(argv)
     found = trials(args.path)
     if not found:
         raise SystemExit(f"{args.path}: no trial with a save/localization.npz")
     if args.breakdown:
-        return print_breakdowns(found)
+        return print_breakdowns(found, args.exact)
     results = []
     for t in found:
         results.append(relift(t, args.edge_ratios, args.thresholds, args.grow))
@@ -168,21 +184,24 @@ def main(argv=None) -> int:
     return 0
 
 
-def print_breakdowns(found: list) -> int:
-    """`--breakdown`: a row per trial, then the totals."""
+def print_breakdowns(found: list, exact: bool = False) -> int:
+    """`--breakdown` (`--exact`: of the exact masks' lift): a row per trial, then the totals."""
     kinds = ("unseen", "covered", "partly", "pooled")
+    print(f"{'exact 2D masks' if exact else 'the saved masks'}, lifted as each trial lifts them")
     print("| trial | selected | truth | false positives: all / " + " / ".join(kinds) + " | misses: all / "
-          + " / ".join(kinds) + " | straddlers (the truth's) |\n| --- | --- | --- | --- | --- | --- |")
+          + " / ".join(kinds) + " | straddlers (the truth's) | px inside the masks: false positives / truth |\n"
+          "| --- | --- | --- | --- | --- | --- | --- |")
     totals: dict = {}
     for t in found:
-        b = breakdown(t)
+        b = breakdown(t, exact)
         for group in ("false_positives", "misses", "straddlers"):
             for key, value in b[group].items():
                 totals[(group, key)] = totals.get((group, key), 0) + value
         fp, miss = b["false_positives"], b["misses"]
         print(f"| {os.path.relpath(t)} | {b['selected']} | {b['truth']} | {fp['all']} / "
               + " / ".join(str(fp[k]) for k in kinds) + f" | {miss['all']} / " + " / ".join(str(miss[k]) for k in kinds)
-              + f" | {b['straddlers']['all']} ({b['straddlers']['truth']}) |", flush=True)
+              + f" | {b['straddlers']['all']} ({b['straddlers']['truth']}) | {b['inside_px']['false_positives']:.1f} / "
+              f"{b['inside_px']['truth']:.1f} |", flush=True)
     print(f"totals over {len(found)}: false positives {totals[('false_positives', 'all')]} ("
           + ", ".join(f"{k} {totals[('false_positives', k)]}" for k in kinds) + f"); misses {totals[('misses', 'all')]} ("
           + ", ".join(f"{k} {totals[('misses', k)]}" for k in kinds) + f"); straddlers {totals[('straddlers', 'all')]} "
