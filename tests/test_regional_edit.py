@@ -324,9 +324,8 @@ def test_same_seed_same_result(runs):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
-# Mid-cycle (a stop between cycles resumes as a kill there does: tests/test_reliability.py).
-@pytest.mark.parametrize("stop_at", [6])
-def test_resume_inside_refine_gives_the_same_scene(runs, stop_at):
+def test_resume_inside_refine_gives_the_same_scene(runs):
+    stop_at = 6  # mid-cycle (a stop between cycles resumes as a kill there does: tests/test_reliability.py)
     full = ply_arrays(Path(get_run(runs, "regional")) / "save" / "edited.ply")
     name = f"resume{stop_at}"
     first = launch(runs["tmp"], name, f"trainer.max_steps={stop_at}")
@@ -639,10 +638,9 @@ def test_longer_refinement_densifies_no_more_often(tmp_path):
 def test_a_longer_cycle_moves_the_added_gaussians_no_further(tmp_path, monkeypatch):
     """The views' targets disagree (each draws the object a little elsewhere); at full rates a cycle
     of 4x the steps carries the added Gaussians about 4x as far after that disagreement (off the
-    object, into the scene outside it: over twice as far as the normal cycle on this scene).
-    `refine.rate_iterations` keeps a cycle's travel: 4x the steps at a quarter of the rates move them
-    about as far as the normal cycle. (Densification and the last prune off, so that each row
-    initialization added can be followed to the end.)"""
+    object, into the scene outside it). `refine.rate_iterations` keeps a cycle's travel: 4x the steps
+    at a quarter of the rates move them about as far as the normal cycle. (Densification and the
+    last prune off, so that each row initialization added can be followed to the end.)"""
     from gs_regional.systems.regional_edit import RegionalEdit
 
     start, end, rates = {}, {}, {}

@@ -50,27 +50,39 @@ def saved_lift(trial: str) -> tuple:
     return cfg, scene.ground_truth, saved, renderer, [scene.cameras[int(i)] for i in saved["views"]]
 
 
+def trial_lift(cfg, model, renderer, cameras) -> dict:
+    """The keyword arguments of `localize_gaussians` as the trial's config lifts (its views'
+    renders as the edge colour test's images)."""
+    import torch
+
+    from gs_regional.config import parse_structured
+    from gs_regional.stages.localize import LocalizeConfig
+
+    with torch.no_grad():
+        images = torch.stack([renderer.render(model, cam)["rgb"].clamp(0, 1) for cam in cameras])
+    lc = parse_structured(LocalizeConfig, cfg.system.get("localization", {}), where="system.localization")
+    return dict(lc.lift(), images=images)
+
+
 def relift(trial: str, ratios, thresholds=(), grow: int = 0) -> dict:
     """{ratio: {"masks": mask_metrics of the saved masks' lift, "exact": of the exact masks', with
     `grow` > 0 "grown": of the exact masks grown by that many pixels, and with `thresholds`
     "best_<each of those>": (the best IoU over them, the threshold that gives it)}}."""
     import torch
 
-    from gs_regional.config import parse_structured
     from gs_regional.metrics.region import mask_metrics, splat_selection
-    from gs_regional.stages.localize import LocalizeConfig, localize_gaussians
+    from gs_regional.stages.localize import localize_gaussians
     from gs_regional.utils.image import dilate
 
     cfg, gt, saved, renderer, cameras = saved_lift(trial)
     model = gt.source
+    trials_lift = trial_lift(cfg, model, renderer, cameras)
     with torch.no_grad():
-        images = torch.stack([renderer.render(model, cam)["rgb"].clamp(0, 1) for cam in cameras])
         masks = [torch.from_numpy(m) for m in saved["masks"]]
-        lc = parse_structured(LocalizeConfig, cfg.system.get("localization", {}), where="system.localization")
         first = None
         out = {}
         for ratio in ratios:
-            lift = dict(lc.lift(), edge_ratio=ratio, images=images)
+            lift = dict(trials_lift, edge_ratio=ratio)
             if first is None:  # its pixel weights and neighbourhoods serve every lift below
                 first = localize_gaussians(model, renderer, cameras, masks, **lift)
                 exact = [splat_selection(v, gt.region) > 0.5 for v in first["views"]]
@@ -107,18 +119,19 @@ def breakdown(trial: str, exact: bool = False) -> dict:
     what no mask can tell apart."""
     import torch
 
-    from gs_regional.config import parse_structured
     from gs_regional.metrics.region import SEEN_MIN_WEIGHT, splat_selection
-    from gs_regional.stages.localize import LocalizeConfig, localize_gaussians, mask_votes, view_weights
+    from gs_regional.stages.localize import localize_gaussians, mask_votes, neighbourhoods, view_weights
 
     cfg, gt, saved, renderer, cameras = saved_lift(trial)
+    model = gt.source
     with torch.no_grad():
-        views = view_weights(gt.source, renderer, cameras)
+        views = view_weights(model, renderer, cameras)
         if exact:
             masks = [splat_selection(v, gt.region) > 0.5 for v in views]
-            lc = parse_structured(LocalizeConfig, cfg.system.get("localization", {}), where="system.localization")
-            images = torch.stack([renderer.render(gt.source, cam)["rgb"].clamp(0, 1) for cam in cameras])
-            selected = localize_gaussians(gt.source, renderer, cameras, masks, images=images, **lc.lift())["selected"].cpu()
+            lift = trial_lift(cfg, model, renderer, cameras)
+            # the pixel weights found above serve the lift too (no second render of every view)
+            reuse = {"views": views, "neighbourhood": neighbourhoods(model.means.detach(), lift["knn"]) if lift["knn"] > 1 else None}
+            selected = localize_gaussians(model, renderer, cameras, masks, reuse=reuse, **lift)["selected"].cpu()
         else:
             masks = [torch.from_numpy(m) for m in saved["masks"]]
             selected = torch.from_numpy(saved["selected"]).bool()
