@@ -48,7 +48,8 @@ def test_stop_after_localize_writes_the_localization_figures_and_the_source_unch
     e = breakdown(str(trial), exact=True)
     for group in ("false_positives", "misses"):
         assert sum(e[group][k] for k in ("unseen", "covered", "partly", "pooled")) == e[group]["all"]
-    assert (e["selected"] - e["false_positives"]["all"]) / e["selected"] == pytest.approx(m["mask_precision_exact_masks"], abs=1e-9)
+    precision = (e["selected"] - e["false_positives"]["all"]) / e["selected"]
+    assert precision == pytest.approx(m["mask_precision_exact_masks"], abs=1e-9)
     assert (e["truth"] - e["misses"]["all"]) / e["truth"] == pytest.approx(m["mask_recall_exact_masks"], abs=1e-9)
     assert e["inside_px"]["truth"] > e["inside_px"]["false_positives"] >= 0
 

@@ -120,7 +120,7 @@ def breakdown(trial: str, exact: bool = False) -> dict:
     import torch
 
     from gs_regional.metrics.region import SEEN_MIN_WEIGHT, splat_selection
-    from gs_regional.stages.localize import localize_gaussians, mask_votes, neighbourhoods, view_weights
+    from gs_regional.stages.localize import localize_gaussians, mask_votes, view_weights
 
     cfg, gt, saved, renderer, cameras = saved_lift(trial)
     model = gt.source
@@ -130,8 +130,7 @@ def breakdown(trial: str, exact: bool = False) -> dict:
             masks = [splat_selection(v, gt.region) > 0.5 for v in views]
             lift = trial_lift(cfg, model, renderer, cameras)
             # the pixel weights found above serve the lift too (no second render of every view)
-            reuse = {"views": views, "neighbourhood": neighbourhoods(model.means.detach(), lift["knn"]) if lift["knn"] > 1 else None}
-            selected = localize_gaussians(model, renderer, cameras, masks, reuse=reuse, **lift)["selected"].cpu()
+            selected = localize_gaussians(model, renderer, cameras, masks, reuse={"views": views}, **lift)["selected"].cpu()
         else:
             masks = [torch.from_numpy(m) for m in saved["masks"]]
             selected = torch.from_numpy(saved["selected"]).bool()

@@ -257,7 +257,8 @@ def localize_gaussians(
     * with neighbour pooling, the Gaussians no view sees take their neighbours' scores
       (`fill_unseen_scores`).
     `reuse`: the result of an earlier lift of the same geometry from the same cameras with the same
-    `knn`: its pixel weights and neighbourhoods are taken as they are (no new renders, no new search).
+    `knn`: its pixel weights and neighbourhoods are taken as they are (no new renders, no new search);
+    {"views": the cameras' `view_weights`} alone: those pixel weights, the neighbourhoods searched.
     Returns {"selected": (N,) bool, "scores": (N,), "view_weights": (V,), "views": the
     `PixelWeights` of the cameras, to render selections back without new renders, "seen": (N,)
     each Gaussian's rendering weight summed over the views, in pixels, "neighbourhood": the rows
@@ -273,7 +274,7 @@ def localize_gaussians(
             colours = sh_to_color(model.sh_degree, model.sh.detach(), model.means.detach(), cam.center).clamp(0, 1)
             num[v] -= outside_like_edge_votes(view, colours, edge[v], mean_in[v], mean_out[v], edge_ratio)
     # the neighbours do not change between reweighting passes: found once
-    if reuse is not None:
+    if reuse is not None and "neighbourhood" in reuse:
         neighbourhood = reuse["neighbourhood"]
     else:
         neighbourhood = neighbourhoods(model.means.detach(), knn) if knn > 1 else None
