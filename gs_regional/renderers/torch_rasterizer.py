@@ -28,7 +28,7 @@ clamped or skipped alphas), not autograd over per-pixel tensors.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Dict, List, Optional, Tuple
 
 import torch
@@ -295,7 +295,8 @@ def _entry_params(conics, opacities, g):
 def _composite_chunk(g, key, ex, dy, conics, opacities, feats, cols, out, alpha_out, log_t_final):
     """Composite one chunk of entries (whole strips) into the output buffers, in place.
 
-    Returns the entries to keep for the backward pass: (gauss, key, ex, dy, alpha, T).
+    Returns the entries to keep for the backward pass: (gauss, key, ex, dy, alpha, T). With
+    `log_t_final` None (a render nothing is differentiated through) it keeps nothing and returns None.
     """
     a, b, c, o = _entry_params(conics, opacities, g)
     dx = ex[:, None] - cols  # (E, strip_width): mean x - pixel centre x
@@ -319,6 +320,8 @@ def _composite_chunk(g, key, ex, dy, conics, opacities, feats, cols, out, alpha_
     fg = feats.index_select(0, g)
     out.index_add_(0, key, (w[:, :, None] * fg[:, None, :]).reshape(key.numel(), out.shape[1]))
     alpha_out.index_add_(0, key, w)
+    if log_t_final is None:
+        return None
     log_t_final.index_add_(0, key, torch.where(valid, log1m, 0.0))
     entry = (g, key, ex, dy, alpha, t)
     # Behind opaque surfaces many entries end up with no contribution at all: dropping them
@@ -332,17 +335,19 @@ def _composite_chunk(g, key, ex, dy, conics, opacities, feats, cols, out, alpha_
 
 def _composite_all(means2d, conics, opacities, feats, depths, layout: _Layout, out, alpha_out, log_t_final) -> list:
     """Bin, sort and composite every entry into the buffers (in place); returns the kept entries
-    of every chunk (see `_composite_chunk`)."""
+    of every chunk (see `_composite_chunk`; none with `log_t_final` None)."""
     cols = torch.arange(layout.strip_width, dtype=feats.dtype, device=feats.device)
     bins = _bin(means2d, conics, opacities, depths, layout)
     kept = []
     for band in bins.bands:
         gauss, keys, exs, dys, chunks = _band_entries(bins, layout, band, feats.dtype)
         for r0, r1 in chunks:
-            kept.append(_composite_chunk(
+            entry = _composite_chunk(
                 gauss[r0:r1], keys[r0:r1], exs[r0:r1], dys[r0:r1], conics, opacities, feats,
                 cols, out, alpha_out, log_t_final,
-            ))
+            )
+            if entry is not None:
+                kept.append(entry)
     return kept
 
 
@@ -399,12 +404,15 @@ class _Rasterize(torch.autograd.Function):
         n_strips = layout.num_strips
         out = torch.zeros(n_strips, sw * channels, dtype=dtype, device=device)
         alpha_out = torch.zeros(n_strips, sw, dtype=dtype, device=device)
-        log_t_final = torch.zeros(n_strips, sw, dtype=dtype, device=device)
+        # A render nothing is differentiated through (most of an edit's) keeps no state for backward.
+        differentiable = any(ctx.needs_input_grad)
+        log_t_final = torch.zeros(n_strips, sw, dtype=dtype, device=device) if differentiable else None
         conics, opacities, fd = conics.detach(), opacities.detach(), feats.detach()
         # Kept for the backward pass, per chunk: the entries that contribute to some pixel, with
         # their alpha (0 where skipped or after the stop) and T.
         ctx.kept = _composite_all(means2d.detach(), conics, opacities, fd, depths.detach(), layout, out, alpha_out, log_t_final)
-        ctx.save_for_backward(conics, opacities, fd, torch.exp(log_t_final))
+        if differentiable:
+            ctx.save_for_backward(conics, opacities, fd, torch.exp(log_t_final))
         return out, alpha_out
 
     @staticmethod
@@ -516,7 +524,10 @@ class TorchRasterizer(Renderer):
             radii, visible = cull(proj, width, height, self.cfg.near_plane, self.cfg.far_plane)
         idx = visible.nonzero().squeeze(1)
         take = lambda x: x.index_select(0, idx)  # noqa: E731  (faster than x[idx] on CPU)
-        proj = project_gaussians(take(means), take(model.quats), torch.exp(take(model.log_scales)), viewmat, *intr)
+        if torch.is_grad_enabled() and any(p.requires_grad for p in (means, model.quats, model.log_scales)):
+            proj = project_gaussians(take(means), take(model.quats), torch.exp(take(model.log_scales)), viewmat, *intr)
+        else:  # nothing to differentiate: the visible rows of the projection above are the same values
+            proj = Projection(*(take(getattr(proj, f.name)) for f in fields(Projection)))
         return idx, proj, radii, visible
 
     def _layout(self, camera: Camera) -> _Layout:

@@ -171,10 +171,17 @@ class GroundTruthConsumer:
 
     _truth_renderer: Optional[TruthRenderer] = None
 
-    def attach_ground_truth(self, truth: GroundTruth) -> None:
+    def attach_ground_truth(self, truth: GroundTruth, shared: Optional[dict] = None) -> None:
+        """`shared`: a dict handed to every simulator of one system: those that render the truth
+        alike (renderer, background, cache size) share one `TruthRenderer`, so a view the editor
+        rendered is not rendered again for the depth estimator."""
         if not isinstance(truth, GroundTruth):
             raise TypeError(f"{self.registered_name}.attach_ground_truth needs a GroundTruth, got {type(truth).__name__}")
-        self._truth_renderer = TruthRenderer(truth, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
+        key = (id(truth), self.cfg.renderer, tuple(float(v) for v in self.cfg.background), int(self.cfg.max_cached_views))
+        shared = {} if shared is None else shared
+        if key not in shared:
+            shared[key] = TruthRenderer(truth, self.cfg.renderer, self.cfg.background, self.cfg.max_cached_views)
+        self._truth_renderer = shared[key]
 
     @property
     def truth_renderer(self) -> TruthRenderer:

@@ -22,7 +22,7 @@ from gs_regional.metrics.region import error_map, unedited_scores
 from gs_regional.metrics.truth import TruthScoring
 from gs_regional.registry import find
 from gs_regional.renderers.select import check_renderer_config, make_renderer
-from gs_regional.sim.truth import GroundTruth
+from gs_regional.sim.truth import GroundTruth, GroundTruthConsumer
 from gs_regional.systems import parallel
 from gs_regional.systems.base import GaussianSystem
 from gs_regional.utils.pretrained import PriorLoader
@@ -178,9 +178,13 @@ class EditSystemBase(GaussianSystem):
                                                           self.cfg.eval.footprint_threshold)
 
     def attach_ground_truth(self, truth: GroundTruth) -> None:
-        """Hand the scene's known edit to every prior that renders one (the simulators)."""
+        """Hand the scene's known edit to every prior that renders one (the simulators; ours share
+        their renders of it)."""
+        shared = {}
         for prior in (self.guidance, getattr(self, "depth_estimator", None)):
-            if hasattr(prior, "attach_ground_truth"):
+            if isinstance(prior, GroundTruthConsumer):
+                prior.attach_ground_truth(truth, shared)
+            elif hasattr(prior, "attach_ground_truth"):  # a plugin's own
                 prior.attach_ground_truth(truth)
 
     def on_fit_start(self) -> None:

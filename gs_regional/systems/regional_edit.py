@@ -417,9 +417,16 @@ class RegionalEdit(EditSystemBase):
         return self.cfg.seed + 1000 * (cycle + 1) + index
 
     def source_region(self, index: int) -> torch.Tensor:
-        """(H, W) render of the localized Gaussians of the source scene at view `index`."""
-        cam = self.scene.cameras[index].to(self.device)
-        return render_selection(self.source_model, self.renderer, cam, self.state.source_selection.to(self.device))
+        """(H, W) render of the localized Gaussians of the source scene at view `index`: rendered
+        once per view, since neither the source scene nor its selection changes after localization."""
+        selection = self.state.source_selection
+        if getattr(self, "_source_regions", (None,))[0] is not selection:
+            self._source_regions = (selection, {})
+        renders = self._source_regions[1]
+        if index not in renders:
+            cam = self.scene.cameras[index].to(self.device)
+            renders[index] = render_selection(self.source_model, self.renderer, cam, selection.to(self.device))
+        return renders[index]
 
     def target(self, index: int, edited: torch.Tensor) -> torch.Tensor:
         """The training target of view `index` from its edit `edited` (the strategy's composite)."""
