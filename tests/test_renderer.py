@@ -257,6 +257,27 @@ def test_matches_dense_reference_values_and_gradients(degree, seed, cfg):
     torch.testing.assert_close(m2d.grad, full_ref, rtol=1e-3, atol=1e-5 * scale)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_render_nothing_is_differentiated_through_matches_the_reference(seed):
+    """Renders under no_grad, or of a scene whose geometry needs no gradient (most of an edit's),
+    take a shorter path (the culling projection's visible rows; no state kept for a backward
+    pass): the same image as the dense reference and as the differentiable render."""
+    cam = make_camera(seed)
+    model = random_scene(cam, n=300, degree=3, seed=seed)
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    ref = reference_render(model, cam, background=bg)
+    slow = TorchRasterizer().render(model, cam, background=bg)
+    with torch.no_grad():
+        fast = TorchRasterizer().render(model, cam, background=bg)
+    frozen = TorchRasterizer().render(model.requires_grad_(False), cam, background=bg)
+    for out in (fast, frozen):
+        assert out["rgb"].grad_fn is None
+        assert torch.equal(out["radii"], slow["radii"]) and torch.equal(out["visible"], slow["visible"])
+        for key in ("rgb", "depth", "alpha"):
+            assert (out[key] - ref[key].detach()).abs().max() < 1e-4, key
+            torch.testing.assert_close(out[key], slow[key].detach(), rtol=0, atol=1e-5, msg=key)
+
+
 def test_override_color_gives_weights_and_lifting_gradient():
     cam = make_camera(3)
     model = random_scene(cam, n=200, degree=1, seed=3)

@@ -226,6 +226,24 @@ def _fit(pred, true, valid):
     return pred * sol[0] + sol[1]
 
 
+def test_the_simulators_of_a_system_share_their_renders_of_the_truth(cams):
+    """A system hands its simulators one dict: those that render the truth alike share one
+    TruthRenderer, so a view the editor rendered is not rendered again for the depth."""
+    gt, shared = make_edit("add"), {}
+    editor, depth = SimulatedEditor(), find("simulated-depth")()
+    editor.attach_ground_truth(gt, shared)
+    depth.attach_ground_truth(gt, shared)
+    assert depth.truth_renderer is editor.truth_renderer
+    views = editor.truth_renderer.views(cams["front"])
+    assert depth.truth_renderer.views(cams["front"]) is views  # rendered once
+    white = find("simulated-depth")({"background": [1.0, 1.0, 1.0]})
+    white.attach_ground_truth(gt, shared)
+    assert white.truth_renderer is not editor.truth_renderer  # another background: other renders
+    alone = SimulatedEditor()
+    alone.attach_ground_truth(gt)
+    assert alone.truth_renderer is not editor.truth_renderer
+
+
 def test_simulated_depth_recovers_true_depth(cams):
     gt = make_edit("add")
     depth = find("simulated-depth")()
