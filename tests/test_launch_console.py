@@ -119,6 +119,8 @@ def test_demo_run_is_quiet_and_ends_with_a_summary_of_existing_outputs(tmp_path)
                                  + f"+{m['count_densified']:,} densified"
                                  + (f", -{m['count_pruned']:,} pruned" if m.get("count_pruned") else "")
                                  + f" -> {m['gaussians_after']:,} after")
+    assert m["refined_as"] == "addition"
+    assert rows["refined as"] == f"an addition: the depth of view {m['v_first']} shows a change of shape"
     assert f"mask IoU {m['mask_iou']:.3f}" in rows["metrics"]
     assert f"PSNR vs true edit {m['psnr_vs_true_edit']:.2f} dB" in rows["metrics"]
     assert all(stage in rows["stages (s)"] for stage in ("localize", "initialize", "refine_train", "output"))
@@ -186,6 +188,28 @@ class TinySystem(BaseSystem):
     def on_train_end(self):
         self.write_metrics_json({"x_sum": float(self.x.sum())})
 '''
+
+
+def test_summary_says_an_edit_was_refined_as_a_recolour_and_how_much_of_the_selection_kept_its_colours(tmp_path):
+    """An instruction to add something whose depth shows no change of shape is refined as a
+    recolour: nothing is added. The summary says so, and how many selected Gaussians the gate left
+    at their colours, beside the Gaussian counts that alone would read as an addition that failed."""
+    save = tmp_path / "save"
+    save.mkdir()
+    (save / "metrics.json").write_text(json.dumps({
+        "refined_as": "recolour", "v_first": 3, "count_selected": 1351, "count_recolour_declined": 167,
+        "gaussians_before": 9765, "gaussians_after": 9765, "count_added_init": 0, "count_densified": 0}))
+    info = RunInfo(trial=tmp_path, mode="train", config_path="c.yaml", system_type="regional-edit", data_type="d",
+                   resume=None, steps=5, setup_seconds=1.0, wall_seconds=2.0, started_at=0.0)
+    def rows():
+        lines = format_summary(info).splitlines()[:-1]
+        return dict(re.fullmatch(r"(\S.*?)\s{2,}(.*)", line).groups() for line in lines)
+
+    assert rows()["refined as"] == (
+        "a recolour: the depth of view 3 shows no change of shape, no Gaussian is added; 167 of the 1,351 selected "
+        "Gaussians keep their colours (the edited views recolour them too little, or they are parts of their own)")
+    (save / "metrics.json").write_text(json.dumps({"refined_as": "addition", "v_first": 3, "init": {"rejected": "x"}}))
+    assert rows()["refined as"] == "an addition: the depth calibration was rejected, so refinement densifies the region"
 
 
 def test_summary_falls_back_to_the_metrics_a_system_reports(tmp_path):

@@ -708,11 +708,12 @@ def test_a_few_gaussians_of_changed_depth_beside_a_recoloured_part_leave_the_edi
     rows = np.load(os.path.join(trial, "save", "edit_mask.npz"))
     if kind == "recolour":
         assert m["init"]["recolour_edge"] == placed and m["init"]["added"] == 0, m["init"]
-        assert m["count_recolour_taken"] > 0  # the gate ran: a recolour
+        assert m["count_recolour_taken"] > 0 and m["refined_as"] == "recolour"  # the gate ran: a recolour
         assert int((rows["generation"] > 0).sum()) == 0
     else:
         assert "recolour_edge" not in m["init"] and m["init"]["added"] == placed, m["init"]
-        assert m.get("count_recolour_taken") is None  # no gate: an addition (its 6 dots, drawing nothing, are pruned)
+        # no gate: an addition (its 6 dots, drawing nothing, are pruned)
+        assert m.get("count_recolour_taken") is None and m["refined_as"] == "addition"
 
 
 def test_the_first_cycles_target_for_the_first_view_is_never_the_full_edit_of_an_addition(tmp_path, monkeypatch):

@@ -3,6 +3,7 @@ from a printed seed. The draw alone is checked for reproducibility and coverage;
 run (synthetic scenes only, so it never needs ../shared/data) runs end to end and writes the JSON
 and the chart. The quick mode is a check of the script, not a measurement."""
 import json
+import re
 import statistics
 
 import pytest
@@ -195,6 +196,24 @@ def test_localize_only_ends_every_run_after_localization(tmp_path, monkeypatch):
     monkeypatch.setattr(cli, "print_report", lambda payload: [])
     assert cli.main(["--quick", "--seed", str(SEED), "--out", str(tmp_path), "--localize-only", "seed=3"]) == 0
     assert seen["overrides"] == ["seed=3", "system.stop_after=localize"] == ["seed=3", cli.LOCALIZE_ONLY]
+
+
+def test_the_report_names_an_addition_refined_as_a_recolour(capsys):
+    """An addition whose depth showed no change of shape adds nothing and only recolours its
+    selected Gaussians (metrics.json `refined_as`): the case table says so beside its kind, as it
+    says of a recolour refined as an addition; an edit refined as its kind is listed plainly."""
+    def rec(i, kind, refined):
+        return {"id": f"c{i}", "kind": kind, "scene": "face", "prompt": "p", "gain": 5.0, "stopped": None,
+                "psnr_outside_vs_true_edit": 60.0, "psnr_unedited": 60.0, "mask_iou": 0.8, "source_deleted": 0,
+                "gaussians_added": 0, "true_added": 100, "region_gaussians": 100, "refined_as": refined}
+
+    report.print_report({"seed": 5, "settings": {"budget": []}, "records": [
+        rec(1, "add_small", "recolour"), rec(2, "recolor_small", "addition"), rec(3, "add_large", "addition"),
+        rec(4, "recolor_large", "recolour")]})
+    rows = {line.split(" | ")[0]: line.split(" | ")[1] for line in capsys.readouterr().out.splitlines()
+            if re.match(r"\| c\d", line)}
+    assert rows == {"| c1": "add_small (refined as a recolour)", "| c2": "recolor_small (refined as an addition)",
+                    "| c3": "add_large", "| c4": "recolor_large"}
 
 
 def test_a_localize_only_report_gives_each_cases_localization_from_both_masks_and_only_its_targets(capsys):

@@ -111,6 +111,27 @@ def _gaussians(m: Dict[str, Any]) -> str:
     return ""
 
 
+def _refined_as(m: Dict[str, Any]) -> str:
+    """How a regional edit was refined (metrics.json `refined_as`), and why: a recolour keeps every
+    Gaussian's shape and adds none, which a user who asked for a new object should be told."""
+    kind, init = m.get("refined_as"), m.get("init")
+    if kind == "recolour":
+        text = f"a recolour: the depth of view {m.get('v_first')} shows no change of shape, no Gaussian is added"
+        if _is_number(m.get("count_selected")) and _is_number(m.get("count_recolour_declined")):
+            text += (f"; {m['count_recolour_declined']:,} of the {m['count_selected']:,} selected Gaussians keep their "
+                     "colours (the edited views recolour them too little, or they are parts of their own)")
+        return text
+    if kind == "addition":
+        if not isinstance(init, dict):
+            why = "initialization did not run"
+        elif "rejected" in init:
+            why = "the depth calibration was rejected, so refinement densifies the region"
+        else:
+            why = f"the depth of view {m.get('v_first')} shows a change of shape"
+        return f"an addition: {why}"
+    return ""
+
+
 def _metrics(m: Dict[str, Any]) -> List[str]:
     shown = [f"{label} {fmt.format(m[key])}" for label, key, fmt in KEY_METRICS if _is_number(m.get(key))]
     if not shown:
@@ -135,6 +156,8 @@ def format_summary(info: RunInfo) -> str:
         rows.append(("start-up (s)", text))
     if _seconds(m):
         rows.append(("stages (s)", _seconds(m)))
+    if _refined_as(m):
+        rows.append(("refined as", _refined_as(m)))
     if _gaussians(m):
         rows.append(("Gaussians", _gaussians(m)))
     if m.get("stopped"):

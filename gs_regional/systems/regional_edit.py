@@ -533,7 +533,8 @@ class RegionalEdit(EditSystemBase):
         extra = dict(s.localize_metrics)
         extra["v_first"] = s.v_first
         extra["edited_views"] = len(s.edited_views)
-        if self.strategy is not None:  # the schedule this edit got
+        if self.strategy is not None:  # how this edit was refined, and its schedule
+            extra["refined_as"] = self.strategy.name
             extra["t_starts"] = [self.strategy.start_timestep(c) for c in range(self.cfg.refine.cycles)]
         if s.init_report:
             extra["init"] = s.init_report

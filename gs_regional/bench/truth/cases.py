@@ -41,7 +41,7 @@ METRIC_KEYS = (
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
     "stopped", "warnings", "count_selected", "count_recolour_declined", "count_recolour_taken", "count_recolour_distinct",
     "count_unedited_cycles", "recolour_done", "recolour_left_unselected", "recolour_left_declined", "recolour_left_taken",
-    "added_cover", "added_cover_outside",
+    "added_cover", "added_cover_outside", "refined_as",
 )
 
 # The face fit (configs/reconstruct.yaml), cached in OUT/face_fit while these settings match.

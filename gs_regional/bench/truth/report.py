@@ -9,12 +9,25 @@ from gs_regional.bench import sweeps
 from gs_regional.bench.truth.cases import KINDS, LOCALIZE_ONLY, PART_KINDS, gain, spread
 from gs_regional.metrics.region import NEAR_FOOTPRINT_PX
 
+
 def _ratio_added(r: dict) -> Optional[float]:
     if r.get("gaussians_added") is None:
         return None
     if r["kind"].startswith("add"):
         return r["gaussians_added"] / max(r.get("true_added") or r.get("true_gaussians_added") or 1, 1)
     return r["gaussians_added"] / max(r.get("region_gaussians") or 1, 1)
+
+
+def refined_otherwise(r: dict) -> str:
+    """" (refined as a recolour)" for an addition whose depth showed no change of shape (none of its
+    object is added: its Gaussians only recolour), " (refined as an addition)" for a recolour whose
+    depth showed one; "" when the edit was refined as its kind."""
+    refined = r.get("refined_as")
+    if refined == "recolour" and r["kind"].startswith("add"):
+        return " (refined as a recolour)"
+    if refined == "addition" and r["kind"].startswith("recolor"):
+        return " (refined as an addition)"
+    return ""
 
 
 MET_WORDS = {True: "ok", False: "FAIL", None: "n/a"}
@@ -171,7 +184,8 @@ def print_report(payload: dict) -> List[Tuple[str, bool, str, List[str]]]:
         print("\n| case | kind | scene | prompt | gain dB | outside dB | unedited dB | IoU | added (truth) | s |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in records if not only else []:
-        head = f"| {r['id']} | {r['kind']} | {r['scene']}{' (own edit)' if r.get('native') else ''} | {r.get('prompt', '')} |"
+        scene = f"{r['scene']}{' (own edit)' if r.get('native') else ''}"
+        head = f"| {r['id']} | {r['kind']}{refined_otherwise(r)} | {scene} | {r.get('prompt', '')} |"
         if r.get("error"):
             print(f"{head} failed: {r['error']} | | | | | |")
             continue
