@@ -208,6 +208,9 @@ def test_summary_says_an_edit_was_refined_as_a_recolour_and_how_much_of_the_sele
     assert rows()["refined as"] == (
         "a recolour: the depth of view 3 shows no change of shape, no Gaussian is added; 167 of the 1,351 selected "
         "Gaussians keep their colours (the edited views recolour them too little, or they are parts of their own)")
+    (save / "metrics.json").write_text(json.dumps({"refined_as": "recolour", "v_first": 3, "init": {"recolour_edge": 4}}))
+    assert rows()["refined as"] == ("a recolour: the depth of view 3 changes only at the recoloured part's edge (4 "
+                                    "Gaussians placed there removed), no Gaussian is added")
     (save / "metrics.json").write_text(json.dumps({"refined_as": "addition", "v_first": 3, "init": {"rejected": "x"}}))
     assert rows()["refined as"] == "an addition: the depth calibration was rejected, so refinement densifies the region"
 

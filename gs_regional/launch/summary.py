@@ -116,7 +116,10 @@ def _refined_as(m: Dict[str, Any]) -> str:
     Gaussian's shape and adds none, which a user who asked for a new object should be told."""
     kind, init = m.get("refined_as"), m.get("init")
     if kind == "recolour":
-        text = f"a recolour: the depth of view {m.get('v_first')} shows no change of shape, no Gaussian is added"
+        edge = init.get("recolour_edge") if isinstance(init, dict) else None
+        shows = (f"changes only at the recoloured part's edge ({edge:,} Gaussians placed there removed)" if edge
+                 else "shows no change of shape")
+        text = f"a recolour: the depth of view {m.get('v_first')} {shows}, no Gaussian is added"
         if _is_number(m.get("count_selected")) and _is_number(m.get("count_recolour_declined")):
             text += (f"; {m['count_recolour_declined']:,} of the {m['count_selected']:,} selected Gaussians keep their "
                      "colours (the edited views recolour them too little, or they are parts of their own)")
