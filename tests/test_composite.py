@@ -462,6 +462,9 @@ def test_a_recolour_the_gate_declines_entirely_says_so(tmp_path, monkeypatch):
     from gs_regional.stages import strategies
 
     monkeypatch.setattr(strategies, "edit_blend", lambda edited, source: torch.zeros(edited.shape[:2]))
+    # (a blend of 0 everywhere would read as an object no view's depth showed, which the later cycles
+    # paint: not this test's world, where the targets do recolour the head)
+    monkeypatch.setattr(strategies, "SMALL_OBJECT_BLEND", 0.0)
     m = metrics_of(launch(tmp_path, "declined", "data.edit=recolor", "system.prompt=make his head red",
                           "system.refine.iterations_per_cycle=6"))
     assert m["count_selected"] > 0 and m["count_recolour_taken"] == 0

@@ -119,7 +119,10 @@ def _refined_as(m: Dict[str, Any]) -> str:
         edge = init.get("recolour_edge") if isinstance(init, dict) else None
         shows = (f"changes only at the recoloured part's edge ({edge:,} Gaussians placed there removed)" if edge
                  else "shows no change of shape")
-        text = f"a recolour: the depth of view {m.get('v_first')} {shows}, no Gaussian is added"
+        painted = m.get("count_added_cycles") or 0
+        text = f"a recolour: the depth of view {m.get('v_first')} {shows}" + (
+            f"; the edited views recolour next to none of the selection, and the later cycles painted {painted:,} "
+            "Gaussians of a new object onto it" if painted else ", no Gaussian is added")
         if _is_number(m.get("count_selected")) and _is_number(m.get("count_recolour_declined")):
             text += (f"; {m['count_recolour_declined']:,} of the {m['count_selected']:,} selected Gaussians keep their "
                      "colours (the edited views recolour them too little, or they are parts of their own)")

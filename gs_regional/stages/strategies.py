@@ -104,6 +104,14 @@ WELL_SEEN = 1.0
 # the later ones), and counted as much as the later ones they declined 4 in 10 of the part.
 EARLIER_CYCLES_WEIGHT = 0.5
 
+# A recolour whose edited views recolour the median seen selected Gaussian by less than this is an
+# object added on the part that no view's depth showed (a small ball at 64²): its later cycles paint
+# what their targets show and the scene lacks (`Recolour.paints_object`). Recolours of the part itself
+# recolour most of their selection (the gate's median blend 0.50-0.78 over their cycles on fresh
+# 912345's recolours), such additions next to none of it (0.00-0.07: the part lies mostly beside the
+# object, or its Gaussians are larger than the object).
+SMALL_OBJECT_BLEND = 0.25
+
 # An edit whose depth shows a change of shape on fewer pixels than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
 # depth estimator answers a recoloured part's edge with a few pixels of changed depth. Trained as
@@ -305,8 +313,10 @@ def colour_step(geometry, rows_: torch.Tensor, views: List[Any], targets: torch.
 
 class Recolour(EditStrategy):
     """Depth initialization was trusted and found no change of shape: the localized Gaussians keep
-    their shape and opacity and train their colours only; none are added. The gate (`after_edits`)
-    keeps the selected Gaussians the edited views do not recolour at their source colours."""
+    their shape and opacity and train their colours only. The gate (`after_edits`) keeps the
+    selected Gaussians the edited views do not recolour at their source colours. None are added,
+    unless the edited views recolour next to none of the selection (SMALL_OBJECT_BLEND): then the
+    edit adds an object no view's depth showed, and the later cycles paint it (`paints_object`)."""
 
     name = "recolour"
     shape_may_change = False
@@ -320,6 +330,25 @@ class Recolour(EditStrategy):
         self.best_weights: Optional[torch.Tensor] = None  # (N,) each row's weight in the view that sees it best
         self.neighbourhood: Optional[torch.Tensor] = None  # (N, GATE_NEIGHBOURS) each row's nearest (`neighbours`)
         self.pieces: Optional[torch.Tensor] = None  # (N,) the selection's connected pieces (`selection_pieces`)
+
+    def rows_appended(self, count: int) -> None:
+        """Rows were added at the end (painted): the per-row state grows with them (no votes, not
+        distinct); the neighbourhoods and pieces are found again."""
+        for name in ("blend_votes", "recent_votes", "was_distinct", "best_weights"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, torch.cat([value, value.new_zeros(*value.shape[:-1], count)], -1))
+        self.neighbourhood = self.pieces = None
+
+    def paints_object(self, system, blend: torch.Tensor, seen: torch.Tensor) -> bool:
+        """Does this cycle paint what its targets show and the scene lacks? From the second cycle
+        on (the first trained the recolour), when the edited views recolour the median seen selected
+        Gaussian (`blend`, the gate's, over the `seen` selected rows) by less than SMALL_OBJECT_BLEND:
+        the edit adds an object on the part that no view's depth showed. Recoloured, the part's
+        Gaussians, mostly beside it or larger than it, could only smear its colour (fresh 880011 c04,
+        a small ball on the face splat: +3.95 dB, 95 of 116 declined by the gate)."""
+        return (system.state.targets_cycle >= 1 and self.regional and self.ablation.initialize and bool(seen.any())
+                and float(blend[seen].median()) < SMALL_OBJECT_BLEND)
 
     @torch.no_grad()
     def poorly_seen(self, system, seen: torch.Tensor) -> torch.Tensor:
@@ -433,7 +462,7 @@ class Recolour(EditStrategy):
         takes &= ~distinct
         system.counts["recolour_distinct"] = int(distinct.sum())
         rows.restore(g, system.source_model, g.mask & ~takes, SHAPE_FREE_PARAMS, system.optimizers())
-        g.mask.copy_(takes)
+        g.mask.copy_(takes | (g.generation > 0))  # what the cycles painted trains too (the gate judges the source's)
         system.counts["recolour_declined"] = int((selected & ~takes).sum())
         system.counts["recolour_taken"] = int((seen & takes).sum())
         # Colours the cycle's steps would leave short land on its targets at once: the inside of
@@ -444,6 +473,10 @@ class Recolour(EditStrategy):
             step |= takes & self.poorly_seen(system, seen_before)
         if bool(step.any()):
             colour_step(g, step, weights, s.cycle_targets, [system.render_view(j)["rgb"] for j in s.cycle_views], blends)
+        if self.paints_object(system, blend, seen):
+            before = g.num_gaussians
+            if system.fill_from_cycle_depth():
+                self.rows_appended(g.num_gaussians - before)
 
     def little_seen_inside(self, geometry, takes: torch.Tensor, blend: torch.Tensor, cycle_seen: torch.Tensor,
                            judged: torch.Tensor) -> torch.Tensor:
@@ -492,7 +525,8 @@ class Recolour(EditStrategy):
         self.recent_votes.mul_(EARLIER_CYCLES_WEIGHT).add_(votes)
 
     def finish(self, system) -> None:
-        if system.counts.get("recolour_taken") == 0:  # the gate let no Gaussian an edited view sees through
+        # the gate let no Gaussian an edited view sees through, and the cycles painted nothing
+        if system.counts.get("recolour_taken") == 0 and not system.counts.get("added_cycles"):
             system.warn(f"refine: the edited views recolour none of the {system.counts.get('selected', 0):,} selected "
                         f"Gaussians by system.refine.min_edit_blend={self.cfg.min_edit_blend} of the edit's colour, "
                         "so each kept its source colours and the scene comes out unchanged; a lower min_edit_blend "
