@@ -113,7 +113,8 @@ def _gaussians(m: Dict[str, Any]) -> str:
 
 def _refined_as(m: Dict[str, Any]) -> str:
     """How a regional edit was refined (metrics.json `refined_as`), and why: a recolour keeps every
-    Gaussian's shape and adds none, which a user who asked for a new object should be told."""
+    Gaussian's shape and adds none but what its later cycles paint, which a user who asked for a new
+    object should be told."""
     kind, init = m.get("refined_as"), m.get("init")
     if kind == "recolour":
         edge = init.get("recolour_edge") if isinstance(init, dict) else None
@@ -162,8 +163,9 @@ def format_summary(info: RunInfo) -> str:
         rows.append(("start-up (s)", text))
     if _seconds(m):
         rows.append(("stages (s)", _seconds(m)))
-    if _refined_as(m):
-        rows.append(("refined as", _refined_as(m)))
+    refined = _refined_as(m)
+    if refined:
+        rows.append(("refined as", refined))
     if _gaussians(m):
         rows.append(("Gaussians", _gaussians(m)))
     if m.get("stopped"):

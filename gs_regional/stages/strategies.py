@@ -1,5 +1,6 @@
 """§3.3's two kinds of edit as strategies (as `geometry/strategy.py` does for densification): a
-`Recolour` changes the colours of the localized Gaussians and adds none; an `Addition` adds
+`Recolour` changes the colours of the localized Gaussians (and paints an object no view's depth
+showed); an `Addition` adds
 Gaussians (from depth, by densification) and leaves the source's where they are. The system
 (`systems/regional_edit.py`) runs the schedule, localize -> initialize -> refinement cycles ->
 finish, and asks the strategy chosen after initialization (`choose_strategy`):
@@ -12,8 +13,8 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 * `set_trainable(geometry, param_groups)`: which rows and parameters train, at what rates;
 * `densify`: the densification strategy of refinement (None: no Gaussian added);
 * `after_edits(system)`: what follows each cycle's edits (the recolour's gate, its pixel weights for
-  training and its colour step where the cycle's steps fall short; the addition's fill from the
-  cycle's depth);
+  training, its colour step where the cycle's steps fall short and its paint of an object no depth
+  showed; the addition's fill from the cycle's depth);
 * `finish(system)`: the last word after refinement;
 * `state_dict()` / `load_state_dict()` / `to(device)`: what it keeps in a checkpoint.
 """
@@ -347,8 +348,7 @@ class Recolour(EditStrategy):
         the edit adds an object on the part that no view's depth showed. Recoloured, the part's
         Gaussians, mostly beside it or larger than it, could only smear its colour (fresh 880011 c04,
         a small ball on the face splat: +3.95 dB, 95 of 116 declined by the gate)."""
-        return (system.state.targets_cycle >= 1 and self.regional and self.ablation.initialize and bool(seen.any())
-                and float(blend[seen].median()) < SMALL_OBJECT_BLEND)
+        return system.state.targets_cycle >= 1 and bool(seen.any()) and float(blend[seen].median()) < SMALL_OBJECT_BLEND
 
     @torch.no_grad()
     def poorly_seen(self, system, seen: torch.Tensor) -> torch.Tensor:

@@ -260,7 +260,7 @@ class RegionalEdit(EditSystemBase):
         self.strategy = self.choose_strategy()
         if not self.strategy.shape_may_change:
             log.info("initialize: the depth of view %d shows no change of shape: refinement recolours the region's "
-                     "Gaussians and adds none", s.v_first)
+                     "Gaussians and adds none, unless its edits recolour next to none of them", s.v_first)
         groups = self.optimizers().optimizer.param_groups
         self.strategy.set_trainable(g, groups)
         for group in groups:  # a longer cycle moves the scene no further (refine.rate_iterations)
