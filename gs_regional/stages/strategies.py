@@ -112,6 +112,9 @@ EARLIER_CYCLES_WEIGHT = 0.5
 # 912345's recolours), such additions next to none of it (0.00-0.07: the part lies mostly beside the
 # object, or its Gaussians are larger than the object).
 SMALL_OBJECT_BLEND = 0.25
+# An addition's cycle edits views in which the Gaussians it added cover at least this many pixels
+# (their `render_selection` summed): a view that sees none of the new object draws none of it.
+ADDED_SEEN_PX = 1.0
 
 # An edit whose depth shows a change of shape on fewer pixels than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
@@ -571,6 +574,41 @@ class Addition(EditStrategy):
         other sides: the first view's depth placed the side it sees)."""
         if self.regional and self.ablation.initialize:
             system.fill_from_cycle_depth()
+
+    @torch.no_grad()
+    def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
+        """The cycle's views that see what the edit added (its render covers ADDED_SEEN_PX pixels or
+        more): a neighbour that sees none of it gives its place to the nearest training view that
+        does. Why: the nearest cameras of a view that sees an object at the back of a head can all
+        look at the head from the other side (424242 c03, a small ball: the first view's six
+        neighbours saw 0-6 of its pixels, other views up to 31); their edits draw nothing, and the
+        cycles place nothing of it. Before anything is added, the schedule's views."""
+        g, scene = system.geometry, system.scene
+        added = g.generation > 0
+        if not self.regional or not bool(added.any()):
+            return frontal, near
+
+        def sees(v: int) -> bool:
+            cam = scene.cameras[v].to(system.device)
+            return float(render_selection(g, system.renderer, cam, added).sum()) >= ADDED_SEEN_PX
+
+        if all(sees(v) for v in near):
+            return frontal, near
+        seeing = []
+        for v in nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices):
+            if len(seeing) == len(near):
+                break
+            if sees(v):
+                seeing.append(v)
+        # too few see it: the nearest of the rest keep their places
+        chosen = seeing + [v for v in near if v not in seeing][: len(near) - len(seeing)]
+        chosen = [v for v in nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
+                  if v in chosen]  # nearest first, as the schedule orders them
+        moved = sum(v not in near for v in chosen)
+        system.counts["cycle_views_moved"] = system.counts.get("cycle_views_moved", 0) + moved
+        log.info("refine %d: %d of view %d's nearest views see nothing of what the edit added; the cycle edits the "
+                 "nearest that do instead", cycle + 1, moved, frontal)
+        return frontal, chosen
 
     def growable(self, geometry) -> Optional[torch.Tensor]:
         """Once the edit has added Gaussians, only they densify: a selected source Gaussian keeps

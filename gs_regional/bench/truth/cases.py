@@ -40,7 +40,7 @@ METRIC_KEYS = (
     "edit_coverage", "edit_coverage_views", "footprint_fraction", "gaussians_before", "gaussians_added", "gaussians_pruned",
     "gaussians_after", "true_gaussians_added", "source_deleted", "unet_evals", "seconds", "seconds_total",
     "stopped", "warnings", "count_selected", "count_recolour_declined", "count_recolour_taken", "count_recolour_distinct",
-    "count_unedited_cycles", "recolour_done", "recolour_left_unselected", "recolour_left_declined", "recolour_left_taken",
+    "count_unedited_cycles", "count_cycle_views_moved", "recolour_done", "recolour_left_unselected", "recolour_left_declined", "recolour_left_taken",
     "added_cover", "added_cover_outside", "refined_as",
 )
 
