@@ -588,22 +588,26 @@ class Addition(EditStrategy):
         if not self.regional or not bool(added.any()):
             return frontal, near
 
+        cover: Dict[int, float] = {}
+
         def sees(v: int) -> bool:
-            cam = scene.cameras[v].to(system.device)
-            return float(render_selection(g, system.renderer, cam, added).sum()) >= ADDED_SEEN_PX
+            if v not in cover:
+                cam = scene.cameras[v].to(system.device)
+                cover[v] = float(render_selection(g, system.renderer, cam, added).sum())
+            return cover[v] >= ADDED_SEEN_PX
 
         if all(sees(v) for v in near):
             return frontal, near
+        by_distance = nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
         seeing = []
-        for v in nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices):
+        for v in by_distance:  # rendered only until enough are found
             if len(seeing) == len(near):
                 break
             if sees(v):
                 seeing.append(v)
         # too few see it: the nearest of the rest keep their places
         chosen = seeing + [v for v in near if v not in seeing][: len(near) - len(seeing)]
-        chosen = [v for v in nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
-                  if v in chosen]  # nearest first, as the schedule orders them
+        chosen = [v for v in by_distance if v in chosen]  # nearest first, as the schedule orders them
         moved = sum(v not in near for v in chosen)
         system.counts["cycle_views_moved"] = system.counts.get("cycle_views_moved", 0) + moved
         log.info("refine %d: %d of view %d's nearest views see nothing of what the edit added; the cycle edits the "
