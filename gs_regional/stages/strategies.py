@@ -21,6 +21,7 @@ finish, and asks the strategy chosen after initialization (`choose_strategy`):
 from __future__ import annotations
 
 import logging
+from itertools import islice
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Dict, List, Optional, Tuple
 
@@ -599,15 +600,9 @@ class Addition(EditStrategy):
         if all(sees(v) for v in near):
             return frontal, near
         by_distance = nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
-        seeing = []
-        for v in by_distance:  # rendered only until enough are found
-            if len(seeing) == len(near):
-                break
-            if sees(v):
-                seeing.append(v)
-        # too few see it: the nearest of the rest keep their places
-        chosen = seeing + [v for v in near if v not in seeing][: len(near) - len(seeing)]
-        chosen = [v for v in by_distance if v in chosen]  # nearest first, as the schedule orders them
+        seeing = list(islice((v for v in by_distance if sees(v)), len(near)))  # rendered until enough are found
+        kept = [v for v in near if v not in seeing][: len(near) - len(seeing)]  # too few see it: the rest stay
+        chosen = [v for v in by_distance if v in seeing or v in kept]  # nearest first, as the schedule orders them
         moved = sum(v not in near for v in chosen)
         system.counts["cycle_views_moved"] = system.counts.get("cycle_views_moved", 0) + moved
         log.info("refine %d: %d of view %d's nearest views see nothing of what the edit added; the cycle edits the "
