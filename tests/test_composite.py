@@ -824,13 +824,14 @@ def test_a_recolours_later_cycle_goes_where_the_part_is_still_unedited(monkeypat
     assert strategy.cycle_views(system, 1, 2, [1, 3, 0]) == (2, [1, 3, 0])
 
 
-def test_an_additions_cycle_edits_the_nearest_views_that_see_what_it_added():
-    """Known answer on the figure's 12 cameras at 32x32: the Gaussians an addition placed are the
-    figure's arm on its +x side, which the low ring's first view (1) sees at its rim and its two
-    nearest views on the arc's end (0 and 6) see nothing of, hidden behind the body. The cycle
-    from view 1 edits its nearest views that see the arm (each covering ADDED_SEEN_PX or more of
-    it), nearest first; a cycle whose neighbours all see it, or one before anything is added,
-    edits the schedule's views."""
+@pytest.mark.parametrize("kind", ["addition", "recolour"])
+def test_a_cycle_edits_the_nearest_views_that_see_the_edits_gaussians(kind):
+    """Known answer on the figure's 12 cameras at 32x32: the edit's Gaussians (an addition's added
+    rows; a recolour's selection) are the figure's arm on its +x side, which the low ring's first
+    view (1) sees at its rim and its two nearest views on the arc's end (0 and 6) see nothing of,
+    hidden behind the body. The cycle from view 1 edits its nearest views that see the arm (each
+    covering SEEN_PX or more of it), nearest first; a cycle whose neighbours all see it, or an
+    addition's before anything is added, edits the schedule's views."""
     from types import SimpleNamespace
 
     from gs_regional.sim.scene import part_masks
@@ -840,17 +841,19 @@ def test_an_additions_cycle_edits_the_nearest_views_that_see_what_it_added():
     model = copy.deepcopy(model)
     cams, _ = make_cameras(12, 32, 32)
     renderer = find("torch-rasterizer")()
-    system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
-                             scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))))
-    ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
-    strategy = strategies.Addition(strategies.RefineConfig(m=3), ablation)
-    schedule = strategies.nearest_cameras(cams, 1, 3, range(12))
-    assert strategy.cycle_views(system, 0, 1, schedule) == (1, schedule)  # nothing added yet
-
     arm = part_masks(0)["arms"] & (model.means[:, 0] > 0)
-    model.generation[arm] = 1
+    system = SimpleNamespace(geometry=model, renderer=renderer, device=torch.device("cpu"), counts={},
+                             scene=SimpleNamespace(cameras=cams, train_indices=list(range(12))),
+                             state=SimpleNamespace(source_selection=arm))
+    ablation = SimpleNamespace(localize=True, optimize_all=False, constant_t=None)
+    strategy = getattr(strategies, kind.capitalize())(strategies.RefineConfig(m=3), ablation)
+    schedule = strategies.nearest_cameras(cams, 1, 3, range(12))
+    if kind == "addition":
+        assert strategy.cycle_views(system, 0, 1, schedule) == (1, schedule)  # nothing added yet
+        model.generation[arm] = 1
+        system.state.source_selection = torch.zeros_like(arm)
     cover = [float(render_selection(model, renderer, cam, arm).sum()) for cam in cams]
-    sees = [v for v in range(12) if cover[v] >= strategies.ADDED_SEEN_PX]
+    sees = [v for v in range(12) if cover[v] >= strategies.SEEN_PX]
     assert [v for v in schedule if v not in sees] == [0, 6], (schedule, cover)  # the premise
     frontal, near = strategy.cycle_views(system, 0, 1, schedule)
     nearest_seeing = [v for v in strategies.nearest_cameras(cams, 1, 11, range(12)) if v in sees][:3]
@@ -858,7 +861,7 @@ def test_an_additions_cycle_edits_the_nearest_views_that_see_what_it_added():
     assert system.counts["cycle_views_moved"] == 2  # metrics.json count_cycle_views_moved
     assert all(cover[v] >= 10 * cover[0] + 1 for v in near if v != 7)  # views that see the arm well
     at_four = strategies.nearest_cameras(cams, 4, 3, range(12))
-    assert all(v in sees for v in at_four) and strategy.cycle_views(system, 1, 4, at_four) == (4, at_four)
+    assert all(v in sees for v in at_four) and strategy.cycle_views(system, 0, 4, at_four) == (4, at_four)
 
 
 def test_a_recolours_later_cycle_goes_to_a_large_unseen_share_of_the_part_even_where_it_covers_little_of_a_view(monkeypatch):

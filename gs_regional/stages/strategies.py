@@ -113,9 +113,10 @@ EARLIER_CYCLES_WEIGHT = 0.5
 # 912345's recolours), such additions next to none of it (0.00-0.07: the part lies mostly beside the
 # object, or its Gaussians are larger than the object).
 SMALL_OBJECT_BLEND = 0.25
-# An addition's cycle edits views in which the Gaussians it added cover at least this many pixels
-# (their `render_selection` summed): a view that sees none of the new object draws none of it.
-ADDED_SEEN_PX = 1.0
+# A cycle edits views in which the edit's Gaussians (an addition's added rows, a recolour's
+# selection) cover at least this many pixels (`views_that_see`): a view that sees none of them
+# edits none of them.
+SEEN_PX = 1.0
 
 # An edit whose depth shows a change of shape on fewer pixels than this while its first full edit
 # recolours the region beside them (`refine.min_recoloured_fraction`) is a recolour: a monocular
@@ -316,6 +317,37 @@ def colour_step(geometry, rows_: torch.Tensor, views: List[Any], targets: torch.
     geometry.sh_dc.data[step] += num[step] / den[step, None] / SH_C0
 
 
+@torch.no_grad()
+def views_that_see(system, cycle: int, frontal: int, near: List[int], region: torch.Tensor,
+                   what: str) -> Tuple[int, List[int]]:
+    """(frontal, near) with each neighbour in which the `region` rows cover under SEEN_PX pixels
+    (their `render_selection` summed) replaced by the nearest training camera to `frontal` that
+    sees them, nearest first; when too few do, the rest of `near` stay. A view that sees none of
+    the region edits none of it: its edit trains nothing of the edit and spends the editor's
+    evaluations. Rendered until enough seeing views are found (one render a view, kept for the
+    cycle); metrics.json `count_cycle_views_moved` counts the views replaced."""
+    g, scene = system.geometry, system.scene
+    cover: Dict[int, float] = {}
+
+    def sees(v: int) -> bool:
+        if v not in cover:
+            cam = scene.cameras[v].to(system.device)
+            cover[v] = float(render_selection(g, system.renderer, cam, region).sum())
+        return cover[v] >= SEEN_PX
+
+    if all(sees(v) for v in near):
+        return frontal, near
+    by_distance = nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
+    seeing = list(islice((v for v in by_distance if sees(v)), len(near)))  # rendered until enough are found
+    kept = [v for v in near if v not in seeing][: len(near) - len(seeing)]  # too few see it: the rest stay
+    chosen = [v for v in by_distance if v in seeing or v in kept]  # nearest first, as the schedule orders them
+    moved = sum(v not in near for v in chosen)
+    system.counts["cycle_views_moved"] = system.counts.get("cycle_views_moved", 0) + moved
+    log.info("refine %d: %d of view %d's nearest views see nothing of %s; the cycle edits the nearest that do "
+             "instead", cycle + 1, moved, frontal, what)
+    return frontal, chosen
+
+
 class Recolour(EditStrategy):
     """Depth initialization was trusted and found no change of shape: the localized Gaussians keep
     their shape and opacity and train their colours only. The gate (`after_edits`) keeps the
@@ -374,13 +406,31 @@ class Recolour(EditStrategy):
 
     @torch.no_grad()
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
-        """A later cycle goes where the part is still unedited: its frontal view is the training
-        view in which the selected Gaussians the edited views have not seen well (`poorly_seen`;
-        the gate's votes count what the edited views saw) cover the most, at least
-        UNEDITED_MIN_AREA of its pixels (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of
-        the selection); half of its neighbours are the nearest cameras to it, the rest the
-        schedule's. Otherwise the schedule's views."""
-        if cycle == 0 or self.blend_votes is None or not self.regional:
+        """A later cycle goes where the part is still unedited (`unedited_views`), and every
+        cycle edits views that see the selection (`views_that_see`). Why the latter: the nearest
+        cameras of a view that sees a small part from its side can all look at the figure from
+        the other side (192837 c13, a small ball on a body's flank: five of its second cycle's
+        seven views covered none of the selection)."""
+        if not self.regional:
+            return frontal, near
+        if cycle:
+            frontal, near = self.unedited_views(system, cycle, frontal, near)
+        return views_that_see(system, cycle, frontal, near, self.region_rows(system), "the selection")
+
+    def region_rows(self, system) -> torch.Tensor:
+        """(N,) bool: the rows the recolour edits: the source's selected rows and what it painted."""
+        g = system.geometry
+        return rows.of_source(g, system.state.source_selection) | (g.generation > 0)
+
+    @torch.no_grad()
+    def unedited_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
+        """A later cycle's frontal view is the training view in which the selected Gaussians the
+        edited views have not seen well (`poorly_seen`; the gate's votes count what the edited
+        views saw) cover the most, at least UNEDITED_MIN_AREA of its pixels
+        (UNEDITED_MIN_SHARE_AREA when they are UNEDITED_MIN_SHARE of the selection); half of its
+        neighbours are the nearest cameras to it, the rest the schedule's. Otherwise the
+        schedule's views."""
+        if self.blend_votes is None:
             return frontal, near
         g, scene = system.geometry, system.scene
         selected = rows.of_source(g, system.state.source_selection)
@@ -578,36 +628,15 @@ class Addition(EditStrategy):
 
     @torch.no_grad()
     def cycle_views(self, system, cycle: int, frontal: int, near: List[int]) -> Tuple[int, List[int]]:
-        """The cycle's views that see what the edit added (its render covers ADDED_SEEN_PX pixels or
-        more): a neighbour that sees none of it gives its place to the nearest training view that
-        does. Why: the nearest cameras of a view that sees an object at the back of a head can all
-        look at the head from the other side (424242 c03, a small ball: the first view's six
-        neighbours saw 0-6 of its pixels, other views up to 31); their edits draw nothing, and the
-        cycles place nothing of it. Before anything is added, the schedule's views."""
-        g, scene = system.geometry, system.scene
-        added = g.generation > 0
+        """The cycle's views that see what the edit added (`views_that_see`). Why: the nearest
+        cameras of a view that sees an object at the back of a head can all look at the head from
+        the other side (424242 c03, a small ball: the first view's six neighbours saw 0-6 of its
+        pixels, other views up to 31); their edits draw nothing, and the cycles place nothing of it.
+        Before anything is added, the schedule's views."""
+        added = system.geometry.generation > 0
         if not self.regional or not bool(added.any()):
             return frontal, near
-
-        cover: Dict[int, float] = {}
-
-        def sees(v: int) -> bool:
-            if v not in cover:
-                cam = scene.cameras[v].to(system.device)
-                cover[v] = float(render_selection(g, system.renderer, cam, added).sum())
-            return cover[v] >= ADDED_SEEN_PX
-
-        if all(sees(v) for v in near):
-            return frontal, near
-        by_distance = nearest_cameras(scene.cameras, frontal, len(scene.train_indices), scene.train_indices)
-        seeing = list(islice((v for v in by_distance if sees(v)), len(near)))  # rendered until enough are found
-        kept = [v for v in near if v not in seeing][: len(near) - len(seeing)]  # too few see it: the rest stay
-        chosen = [v for v in by_distance if v in seeing or v in kept]  # nearest first, as the schedule orders them
-        moved = sum(v not in near for v in chosen)
-        system.counts["cycle_views_moved"] = system.counts.get("cycle_views_moved", 0) + moved
-        log.info("refine %d: %d of view %d's nearest views see nothing of what the edit added; the cycle edits the "
-                 "nearest that do instead", cycle + 1, moved, frontal)
-        return frontal, chosen
+        return views_that_see(system, cycle, frontal, near, added, "what the edit added")
 
     def growable(self, geometry) -> Optional[torch.Tensor]:
         """Once the edit has added Gaussians, only they densify: a selected source Gaussian keeps
