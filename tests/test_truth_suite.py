@@ -315,6 +315,37 @@ def test_a_colour_class_threaded_through_another_part_is_no_part_a_case_picks():
         assert facts["shown_fraction"] >= scenes.MIN_SHOWN
 
 
+def test_a_whole_part_case_takes_the_seen_segment_nearest_the_drawn_size_however_many_are_hidden(monkeypatch):
+    """40 segments of 30-69 Gaussians, the drawn size that of the smallest: all but the largest are
+    hidden from the cameras (as most of a fitted face's segments lie inside its layers). The case takes
+    the largest, the only one seen, instead of failing after the nearest few (fresh 274464 c29, c31)."""
+    import types
+
+    import torch
+
+    from gs_regional.bench.truth import scenes
+    from gs_regional.sim import splat_truth
+
+    sizes = list(range(30, 70))
+    segments = torch.cat([torch.full((n,), j) for j, n in enumerate(sizes)])
+    seen_one = len(sizes) - 1
+
+    def visibility(model, region, cameras, up):
+        j = int(segments[region][0])
+        return {"hidden_fraction": 0.2 if j == seen_one else 0.95, "shown_fraction": 0.9}
+
+    monkeypatch.setattr(splat_truth, "part_visibility", visibility)
+    model = types.SimpleNamespace(means=torch.zeros(len(segments), 3))
+    subject = types.SimpleNamespace(labels=None, model=model, up=None, segments=lambda: segments,
+                                    camera_list=lambda: [None] * 24, part_at=lambda p: "blob", name="face")
+    region, _, key, _ = scenes.part_region({"part_size": 0.0}, subject)
+    assert key == f"segment{seen_one}" and torch.equal(region, segments == seen_one)
+    # none seen: the case fails, naming the scene and how many segments were tried
+    seen_one = -1
+    with pytest.raises(ValueError, match="face: none of its 40 segments"):
+        scenes.part_region({"part_size": 0.0}, subject)
+
+
 def test_segments_of_two_coloured_blobs_are_the_blobs():
     import torch
 

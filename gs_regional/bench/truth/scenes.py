@@ -290,7 +290,6 @@ MAX_HIDDEN = 0.9  # a real splat's segment more hidden than this (inside the obj
 # no region of its own; its exact 2D masks are near empty and the pixels an editor paints for it are mostly
 # other Gaussians (the fitted face's segments: 0.01-0.72, the donut's 0.3-0.94)
 MIN_SHOWN = 0.5
-PART_TRIES = 20  # segments tried, nearest the drawn size first, before a real splat's case fails
 
 
 def part_region(case: dict, subject: Subject, accept=None):
@@ -316,14 +315,16 @@ def part_region(case: dict, subject: Subject, accept=None):
         raise ValueError(f"{subject.name}: no segment of {MIN_PART} or more Gaussians")
     sizes = counts[eligible].float().log()
     target = sizes.min() + case["part_size"] * (sizes.max() - sizes.min())
-    for j in eligible[torch.argsort((sizes - target).abs(), stable=True)][:PART_TRIES].tolist():
+    # Nearest the drawn size first, every eligible segment if need be: a fit of the face photos can
+    # leave the twenty nearest all hidden or threaded through other parts.
+    for j in eligible[torch.argsort((sizes - target).abs(), stable=True)].tolist():
         region = seg == j
         seen = part_visibility(subject.model, region, subject.camera_list()[::3], subject.up)  # a third of the views
         hidden, shown = seen["hidden_fraction"], seen["shown_fraction"]  # None: no camera sees it
         if hidden is None or hidden > MAX_HIDDEN or shown < MIN_SHOWN or (accept is not None and not accept(region)):
             continue
         return region, subject.part_at(subject.model.means[region].mean(0)), f"segment{j}", seen
-    raise ValueError(f"{subject.name}: none of the {PART_TRIES} segments nearest the drawn size is seen "
+    raise ValueError(f"{subject.name}: none of its {len(eligible)} segments of {MIN_PART} or more Gaussians is seen "
                      f"(hidden <= {MAX_HIDDEN}, shown >= {MIN_SHOWN}) and takes the case")
 
 
