@@ -315,11 +315,12 @@ def part_region(case: dict, subject: Subject, accept=None):
         raise ValueError(f"{subject.name}: no segment of {MIN_PART} or more Gaussians")
     sizes = counts[eligible].float().log()
     target = sizes.min() + case["part_size"] * (sizes.max() - sizes.min())
-    # Nearest the drawn size first, every eligible segment if need be: a fit of the face photos can
-    # leave the twenty nearest all hidden or threaded through other parts.
+    cameras = subject.camera_list()[::3]  # a third of the views
+    # Nearest the drawn size first, every eligible segment if need be: most of a fitted face's
+    # segments can lie hidden inside its layers or threaded through other parts.
     for j in eligible[torch.argsort((sizes - target).abs(), stable=True)].tolist():
         region = seg == j
-        seen = part_visibility(subject.model, region, subject.camera_list()[::3], subject.up)  # a third of the views
+        seen = part_visibility(subject.model, region, cameras, subject.up)
         hidden, shown = seen["hidden_fraction"], seen["shown_fraction"]  # None: no camera sees it
         if hidden is None or hidden > MAX_HIDDEN or shown < MIN_SHOWN or (accept is not None and not accept(region)):
             continue
