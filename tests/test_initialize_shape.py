@@ -181,6 +181,33 @@ def test_a_recolour_is_refined_without_adding_gaussians(tmp_path):
     assert changed.any() and not changed[~selected].any()  # colours change in the selection only
 
 
+def test_a_recolour_saves_the_gates_blend_of_each_source_gaussian_as_the_gate_judged_it(tmp_path):
+    """save/edit_mask.npz `gate_blend` (scripts/changed_gaussians.py reads it) is the blend the gate
+    judged each source Gaussian on: every selected one an edited view saw and the gate took
+    reaches the gate's threshold on it; of those that reach it, only the parts of their own
+    (`count_recolour_distinct`) were declined."""
+    from gs_regional.bench import changed_gaussians
+    from gs_regional.geometry.neighbors import column_quantile
+    from gs_regional.stages.composite import MIN_GATE_REFERENCE
+    from gs_regional.stages.strategies import GATE_REFERENCE_QUANTILE, RefineConfig
+
+    m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
+    trial = trial_of(tmp_path, "recolour")
+    with np.load(trial / "save" / "edit_mask.npz") as f:
+        blend, taken, selected = (torch.from_numpy(f[k]) for k in ("gate_blend", "mask", "source_selection"))
+    n = len(make_edit("recolor").source)
+    assert blend.shape == taken.shape == selected.shape == (n,)  # the source's rows, in order (a recolour adds none here)
+    judged = selected.bool() & ~blend.isnan()
+    reference = float(column_quantile(blend[judged][:, None], GATE_REFERENCE_QUANTILE)[0])
+    need = RefineConfig().min_edit_blend * min(max(reference, MIN_GATE_REFERENCE), 1.0)
+    took, declined = taken.bool() & judged, ~taken.bool() & judged
+    assert int(took.sum()) > 0 and int(declined.sum()) > 0
+    assert float(blend[took].min()) >= need - 1e-5  # a row the gate took reached its threshold
+    assert int((declined & (blend >= need + 1e-5)).sum()) <= m["count_recolour_distinct"]  # else: parts of their own
+    band = changed_gaussians.report(str(trial))["editable, in the true region"]["gate blend"]
+    assert len(band) == 3 and need - 1e-5 <= band[0] <= band[1] <= band[2] <= 1.0
+
+
 def test_an_addition_is_found_in_a_second_view_when_the_first_edit_misses_it(tmp_path, monkeypatch):
     """One full edit can miss a thin new object: the editor draws it a few pixels off (more than
     a moustache at 64² is thick) or not at all, and the depth of that image shows no change of

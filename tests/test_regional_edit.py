@@ -806,3 +806,4 @@ def test_changed_gaussians_report_of_an_addition(runs):
     assert inside["gaussians"] + left_out["gaussians"] == region and inside["gaussians"] > 0.5 * region
     assert inside["changed colour"] == outside["changed colour"] == 0  # an addition keeps source colours
     assert inside["mean colour error vs truth"] < 1e-3  # the truth's source rows keep theirs too
+    assert all(r["gate blend"] is None for r in rep.values())  # no recolour gate judged them

@@ -3,12 +3,15 @@ ground truth (`synthetic-scene`, `splat-truth`: the truth suite's cases, the dem
 Gaussians still editable at the end (save/edit_mask.npz) inside and outside the true region, how
 many of them changed colour, and their colour error against the true edit; and the true region's
 Gaussians the edit left out. A recolour's loss outside the true footprint shows here as changed
-Gaussians outside the region.
+Gaussians outside the region; with each group the band of the recolour gate's blend (the
+10th/50th/90th percentile of save/edit_mask.npz `gate_blend`): where the rows it took outside the
+region and those it declined inside overlap, no threshold of the blend tells them apart.
 
     python scripts/changed_gaussians.py TRIAL_DIR [--min-change 0.02]
 """
 import argparse
 import os
+from typing import List, Optional
 
 
 def report(trial: str, min_change: float = 0.02) -> dict:
@@ -38,9 +41,30 @@ def report(trial: str, min_change: float = 0.02) -> dict:
     error = (rgb - rgb_true).abs().mean(1)
     groups = {"editable, in the true region": editable & region, "editable, outside it": editable & ~region,
               "in the true region, left out": ~editable & region}
+    blend = gate_blend(trial)
+    blend = None if blend is None else blend[src]
+
+    def band(m: torch.Tensor) -> Optional[List[float]]:
+        """The gate's blend of the rows `m` it judged: 10th, 50th and 90th percentile."""
+        if blend is None:
+            return None
+        judged = blend[m & ~blend.isnan()]
+        return [round(float(v), 2) for v in judged.quantile(torch.tensor([0.1, 0.5, 0.9]))] if judged.numel() else []
+
     return {name: {"gaussians": int(m.sum()), "changed colour": int((changed & m).sum()),
-                   "mean colour error vs truth": round(float(error[m].mean()), 4) if m.any() else None}
+                   "mean colour error vs truth": round(float(error[m].mean()), 4) if m.any() else None,
+                   "gate blend": band(m)}
             for name, m in groups.items()}
+
+
+def gate_blend(trial: str):
+    """(n_source,) a recolour's gate blend of each source Gaussian (save/edit_mask.npz
+    `gate_blend`, NaN where no edited view saw it), None when the run saved none (an addition)."""
+    import numpy as np
+    import torch
+
+    with np.load(os.path.join(trial, "save", "edit_mask.npz")) as f:
+        return torch.from_numpy(f["gate_blend"]) if "gate_blend" in f else None
 
 
 def main(argv=None) -> int:
@@ -48,7 +72,9 @@ def main(argv=None) -> int:
     ap.add_argument("trial", help="a trial dir of an edit run (with configs/parsed.yaml and save/)")
     ap.add_argument("--min-change", type=float, default=0.02, help="largest RGB change that counts as unchanged")
     args = ap.parse_args(argv)
-    print(f"| {args.trial} | Gaussians | changed colour | mean colour error vs truth |\n| --- | --- | --- | --- |")
+    print(f"| {args.trial} | Gaussians | changed colour | mean colour error vs truth | the gate's blend (10/50/90 %) |\n"
+          "| --- | --- | --- | --- | --- |")
     for name, r in report(args.trial, args.min_change).items():
-        print(f"| {name} | {r['gaussians']} | {r['changed colour']} | {r['mean colour error vs truth']} |")
+        band = "-" if r["gate blend"] is None else " / ".join(f"{v:.2f}" for v in r["gate blend"]) or "none judged"
+        print(f"| {name} | {r['gaussians']} | {r['changed colour']} | {r['mean colour error vs truth']} | {band} |")
     return 0

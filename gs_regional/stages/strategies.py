@@ -284,6 +284,10 @@ class EditStrategy:
     def finish(self, system) -> None:
         pass
 
+    def saved_arrays(self, n_source: int) -> Dict[str, Any]:
+        """More per-Gaussian arrays for save/edit_mask.npz, over the `n_source` source rows (none here)."""
+        return {}
+
     def state_dict(self) -> Dict[str, Any]:
         return {}
 
@@ -585,6 +589,19 @@ class Recolour(EditStrategy):
                         f"Gaussians by system.refine.min_edit_blend={self.cfg.min_edit_blend} of the edit's colour, "
                         "so each kept its source colours and the scene comes out unchanged; a lower min_edit_blend "
                         "lets the edit through")
+
+    def saved_arrays(self, n_source: int) -> Dict[str, Any]:
+        """`gate_blend` (n_source,) float32: each source Gaussian's blend as the gate last judged it
+        (the edited views' rendering-weighted mean `edit_blend`, earlier cycles weighted down), NaN
+        where no edited view saw it. What scripts/changed_gaussians.py reads to tell whether the
+        rows a recolour took or declined could be told apart by it. The source's rows come first
+        and in order: a recolour only appends (the cycles' paint) and prunes what it appended."""
+        if self.recent_votes is None or self.blend_votes is None:
+            return {}
+        num, den = self.recent_votes[:, :n_source]
+        seen = self.blend_votes[1, :n_source] >= SEEN_MIN_WEIGHT
+        blend = torch.where(seen, num / den.clamp_min(1e-12), torch.full_like(num, float("nan")))
+        return {"gate_blend": blend.float().cpu().numpy()}
 
     def state_dict(self) -> Dict[str, Any]:
         return {**{key: None if value is None else value.cpu()

@@ -522,9 +522,11 @@ class RegionalEdit(EditSystemBase):
         self.strategy.finish(self)
 
     def edit_mask_arrays(self) -> Dict[str, Any]:
-        """save/edit_mask.npz also holds the selection over the source Gaussians (gs_regional.edit)."""
+        """save/edit_mask.npz also holds the selection over the source Gaussians (gs_regional.edit)
+        and the strategy's arrays (a recolour's `gate_blend`)."""
         sel = self.state.source_selection
-        return {} if sel is None else {"source_selection": sel.cpu().numpy()}
+        out = {} if sel is None else {"source_selection": sel.cpu().numpy()}
+        return out if self.strategy is None else {**out, **self.strategy.saved_arrays(self.n_source)}
 
     def on_train_end(self) -> None:
         s = self.state
