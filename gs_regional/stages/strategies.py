@@ -591,9 +591,9 @@ class Recolour(EditStrategy):
                         "lets the edit through")
 
     def saved_arrays(self, n_source: int) -> Dict[str, Any]:
-        """`gate_blend` (n_source,) float32: each source Gaussian's blend as the gate last judged it
-        (the edited views' rendering-weighted mean `edit_blend`, earlier cycles weighted down), NaN
-        where no edited view saw it. What scripts/changed_gaussians.py reads to tell whether the
+        """`gate_blend` (n_source,) float32: each source Gaussian's blend at the last cycle (the
+        edited views' rendering-weighted mean `edit_blend`, earlier cycles weighted down: what the
+        gate judges the selected ones on), NaN where no edited view saw it. What scripts/changed_gaussians.py reads to tell whether the
         rows a recolour took or declined could be told apart by it. The source's rows come first
         and in order: a recolour only appends (the cycles' paint) and prunes what it appended."""
         if self.recent_votes is None or self.blend_votes is None:
