@@ -187,8 +187,7 @@ def test_a_recolour_saves_the_gates_blend_of_each_source_gaussian_as_the_gate_ju
     reaches the gate's threshold on it; of those that reach it, only the parts of their own
     (`count_recolour_distinct`) were declined."""
     from gs_regional.bench import changed_gaussians
-    from gs_regional.geometry.neighbors import column_quantile
-    from gs_regional.stages.composite import MIN_GATE_REFERENCE
+    from gs_regional.stages.composite import gate_threshold
     from gs_regional.stages.strategies import GATE_REFERENCE_QUANTILE, RefineConfig
 
     m = tiny_run(tmp_path, "recolour", "data.edit=recolor", "system.prompt=make his head red")
@@ -198,8 +197,7 @@ def test_a_recolour_saves_the_gates_blend_of_each_source_gaussian_as_the_gate_ju
     n = len(make_edit("recolor").source)
     assert blend.shape == taken.shape == selected.shape == (n,)  # the source's rows, in order (a recolour adds none here)
     judged = selected.bool() & ~blend.isnan()
-    reference = float(column_quantile(blend[judged][:, None], GATE_REFERENCE_QUANTILE)[0])
-    need = RefineConfig().min_edit_blend * min(max(reference, MIN_GATE_REFERENCE), 1.0)
+    need = gate_threshold(blend, judged, RefineConfig().min_edit_blend, GATE_REFERENCE_QUANTILE)
     took, declined = taken.bool() & judged, ~taken.bool() & judged
     assert int(took.sum()) > 0 and int(declined.sum()) > 0
     assert float(blend[took].min()) >= need - 1e-5  # a row the gate took reached its threshold

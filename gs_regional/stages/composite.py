@@ -16,18 +16,23 @@ from gs_regional.utils.image import dilate
 MIN_GATE_REFERENCE = 0.3
 
 
+def gate_threshold(blend: torch.Tensor, seen: torch.Tensor, min_blend: float, reference_quantile: float) -> float:
+    """The mean edit_blend a `seen` Gaussian must reach to take a recolour (`recoloured`):
+    `min_blend` times the `blend` the `reference_quantile` of the seen ones reach, kept within
+    [MIN_GATE_REFERENCE, 1] (`reference_quantile` 0: `min_blend` itself). In a part the edit
+    covers whole that reference is 1; a part a few pixels across is all edge, and its own
+    Gaussians then take as little of the edit's colour as a larger part's rim takes of its bleed."""
+    if reference_quantile <= 0 or not bool(seen.any()):
+        return min_blend
+    best = float(column_quantile(blend[seen][:, None], reference_quantile)[0])
+    return min_blend * min(max(best, MIN_GATE_REFERENCE), 1.0)
+
+
 def recoloured(num: torch.Tensor, den: torch.Tensor, seen: torch.Tensor, min_blend: float,
                reference_quantile: float) -> torch.Tensor:
     """(N,) bool: the `seen` Gaussians whose mean edit_blend (`num` / `den`, rendering-weighted
-    over their views) reaches `min_blend` times the blend the `reference_quantile` of the seen
-    ones reach, kept within [MIN_GATE_REFERENCE, 1] (`reference_quantile` 0: `min_blend` itself).
-    In a part the edit covers whole that reference is 1; a part a few pixels across is all edge,
-    and its own Gaussians then take as little of the edit's colour as a larger part's rim takes
-    of its bleed."""
-    need = min_blend
-    if reference_quantile > 0 and bool(seen.any()):
-        best = float(column_quantile((num / den.clamp_min(1e-12))[seen][:, None], reference_quantile)[0])
-        need *= min(max(best, MIN_GATE_REFERENCE), 1.0)
+    over their views) reaches the `gate_threshold`."""
+    need = gate_threshold(num / den.clamp_min(1e-12), seen, min_blend, reference_quantile)
     return seen & (num >= need * den)
 
 

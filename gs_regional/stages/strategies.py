@@ -502,10 +502,10 @@ class Recolour(EditStrategy):
         num, den = self.recent_votes
         src = g.source_index
         selected = rows.of_source(g, s.source_selection)
-        seen = selected & (self.blend_votes[1] >= SEEN_MIN_WEIGHT)  # one no edited view sees is not judged: it keeps training
+        blend, seen_by_views = self.judged_blend()
+        seen = selected & seen_by_views  # one no edited view sees is not judged: it keeps training
         takes = (selected & ~seen) | recoloured(num, den, seen, self.cfg.min_edit_blend, GATE_REFERENCE_QUANTILE)
         colours = sh_to_rgb(system.source_model.sh_dc.detach()[src.clamp_min(0)]).clamp(0, 1)
-        blend = num / den.clamp_min(1e-12)
         if self.was_distinct is None or self.was_distinct.shape != seen.shape:
             self.was_distinct = torch.zeros_like(seen)
         distinct = torch.zeros_like(seen)
@@ -590,18 +590,22 @@ class Recolour(EditStrategy):
                         "so each kept its source colours and the scene comes out unchanged; a lower min_edit_blend "
                         "lets the edit through")
 
+    def judged_blend(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """((N,) each row's blend: the edited views' rendering-weighted mean `edit_blend`, earlier
+        cycles weighted down, what the gate judges a selected row on; (N,) bool: an edited view saw
+        it, SEEN_MIN_WEIGHT pixels of rendering weight over all cycles)."""
+        num, den = self.recent_votes
+        return num / den.clamp_min(1e-12), self.blend_votes[1] >= SEEN_MIN_WEIGHT
+
     def saved_arrays(self, n_source: int) -> Dict[str, Any]:
-        """`gate_blend` (n_source,) float32: each source Gaussian's blend at the last cycle (the
-        edited views' rendering-weighted mean `edit_blend`, earlier cycles weighted down: what the
-        gate judges the selected ones on), NaN where no edited view saw it. What scripts/changed_gaussians.py reads to tell whether the
-        rows a recolour took or declined could be told apart by it. The source's rows come first
-        and in order: a recolour only appends (the cycles' paint) and prunes what it appended."""
+        """`gate_blend` (n_source,) float32: each source Gaussian's `judged_blend` at the last
+        cycle, NaN where no edited view saw it (scripts/changed_gaussians.py: can the rows the gate
+        took be told from those it declined by it?). The source's rows come first and in order: a
+        recolour only appends (the cycles' paint) and prunes what it appended."""
         if self.recent_votes is None or self.blend_votes is None:
             return {}
-        num, den = self.recent_votes[:, :n_source]
-        seen = self.blend_votes[1, :n_source] >= SEEN_MIN_WEIGHT
-        blend = torch.where(seen, num / den.clamp_min(1e-12), torch.full_like(num, float("nan")))
-        return {"gate_blend": blend.float().cpu().numpy()}
+        blend, seen = (x[:n_source] for x in self.judged_blend())
+        return {"gate_blend": torch.where(seen, blend, torch.full_like(blend, float("nan"))).float().cpu().numpy()}
 
     def state_dict(self) -> Dict[str, Any]:
         return {**{key: None if value is None else value.cpu()
