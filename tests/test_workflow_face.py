@@ -84,6 +84,7 @@ def test_reconstruct_then_edit_a_splat_whose_renders_leave_0_1(tmp_path, tiny_mo
     fit = ["--config", str(ROOT / "configs" / "reconstruct.yaml"), "--train", f"data.source={scene}",
            "tag=bright", "use_timestamp=false", f"exp_root_dir={out}", "system.max_steps=250",
            "system.sh_degree_every=10", "system.densify.start=20", "system.densify.every=100",
+           "system.random_points=2000",  # a tenth of the default: the same peak (1.04), half the time
            "trainer.enable_progress_bar=false"]
     assert main(fit) == 0
     ply = Path(out) / "reconstruct" / "bright" / "save" / "reconstructed.ply"
