@@ -2,14 +2,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, List, Optional, Sequence
+from typing import Any, List, Optional, Sequence
 
 import torch
 
 from gs_regional.data.cameras import Camera
-
-if TYPE_CHECKING:  # for the annotation only: data/ sits below the simulators and never imports them
-    from gs_regional.sim.truth import GroundTruth
 
 
 @dataclass
@@ -20,8 +17,9 @@ class SceneData:
     test_indices: List[int] = field(default_factory=list)
     # SfM points for scenes without a trained splat: (xyz (N,3), rgb (N,3)) or None
     points: Optional[tuple] = None
-    # The known edit of this scene, if any data module knows one (the synthetic scene does).
-    ground_truth: Optional["GroundTruth"] = None
+    # The known edit of this scene, if any data module knows one (the synthetic scene does): a
+    # gs_regional.sim.truth.GroundTruth (data/ sits below the simulators and never imports them).
+    ground_truth: Optional[Any] = None
     source: str = ""  # where it came from, for messages
 
     def __post_init__(self) -> None:
