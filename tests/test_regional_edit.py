@@ -604,8 +604,8 @@ def test_an_addition_leaves_the_colours_of_the_source_gaussians(runs):
     jittered copy of the moustache and the scene outside the true footprint loses a few dB. With
     refine.min_recoloured_fraction=0 the colours train, so the test can tell the two apart."""
     source = make_edit("add").source
-    for name, extra, keeps in (("short", [], True), ("short-free", ["system.refine.min_recoloured_fraction=0"], False)):
-        trial = get_short_run(runs, name, *extra)
+    for name, extra, keeps in (("regional", [], True), ("free", ["system.refine.min_recoloured_fraction=0"], False)):
+        trial = get_run(runs, name, "configs/demo.yaml", *extra)
         m = metrics_of(trial)
         assert m["count_added_init"] > 0
         assert m["init"]["recoloured_fraction"] < 0.3
