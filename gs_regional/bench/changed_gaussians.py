@@ -41,8 +41,8 @@ def report(trial: str, min_change: float = 0.02) -> dict:
     error = (rgb - rgb_true).abs().mean(1)
     groups = {"editable, in the true region": editable & region, "editable, outside it": editable & ~region,
               "in the true region, left out": ~editable & region}
-    blend = gate_blend(trial)
-    blend = None if blend is None else blend[src]
+    blend = rows.get("gate_blend")  # a recolour's, over the source's rows (None: an addition)
+    blend = None if blend is None else torch.from_numpy(blend)[src]
 
     def band(m: torch.Tensor) -> Optional[List[float]]:
         """The gate's blend of the rows `m` it judged: 10th, 50th and 90th percentile."""
@@ -55,16 +55,6 @@ def report(trial: str, min_change: float = 0.02) -> dict:
                    "mean colour error vs truth": round(float(error[m].mean()), 4) if m.any() else None,
                    "gate blend": band(m)}
             for name, m in groups.items()}
-
-
-def gate_blend(trial: str):
-    """(n_source,) a recolour's gate blend of each source Gaussian (save/edit_mask.npz
-    `gate_blend`, NaN where no edited view saw it), None when the run saved none (an addition)."""
-    import numpy as np
-    import torch
-
-    with np.load(os.path.join(trial, "save", "edit_mask.npz")) as f:
-        return torch.from_numpy(f["gate_blend"]) if "gate_blend" in f else None
 
 
 def main(argv=None) -> int:

@@ -134,11 +134,14 @@ def _data_config_without_photos(data_cls: Any, data_cfg: Any) -> Any:
 
 
 def read_edit_rows(trial: Path, n_edited: int) -> Tuple[Optional[Dict[str, np.ndarray]], str]:
-    """(mask, generation, source_index) rows of edited.ply, and where they come from."""
+    """(mask, generation, source_index) rows of edited.ply, and where they come from; from
+    save/edit_mask.npz also a recolour's `gate_blend` (over the source's rows) where it has one."""
     path = trial / "save" / EDIT_MASK_FILE
     if path.is_file():
         with np.load(path) as f:
             rows = {k: f[k] for k in ("mask", "generation", "source_index")}
+            if "gate_blend" in f:
+                rows["gate_blend"] = f["gate_blend"]
         where = f"save/{EDIT_MASK_FILE}"
     else:
         ckpt = trial / "ckpts" / "last.ckpt"
